@@ -1,0 +1,1 @@
+"""Simulated drives that speak the real wire protocols."""
