@@ -1,0 +1,721 @@
+"""Drive profiles: a drive family described as data.
+
+A profile is a YAML file in ``vfd_ros2/profiles/`` validated into frozen
+dataclasses. It holds everything the driver and the simulated twin need to know
+about a drive family: the parameter (register) table with scaling, ranges and
+access; which registers carry the command, setpoint, status and measured values;
+the command values; the fault and exception tables with the manual's words; and
+the Modbus limits. A new family is a new file, never a new ``if`` in the code.
+
+The schema is documented in ``vfd_ros2/profiles/README.md``.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from .errors import ParameterError, ProfileError
+
+PROFILE_DIR = Path(__file__).resolve().parent / 'profiles'
+
+
+class Access(str, enum.Enum):
+    """Who may write a parameter, and when."""
+
+    READ_ONLY = 'ro'
+    READ_WRITE = 'rw'
+    WRITE_WHEN_STOPPED = 'rw_stopped'
+
+
+class ValueType(str, enum.Enum):
+    """How a parameter's raw value is laid out in 16-bit registers."""
+
+    UINT16 = 'uint16'
+    INT16 = 'int16'
+    UINT32 = 'uint32'
+    INT32 = 'int32'
+
+    @property
+    def register_count(self) -> int:
+        return 2 if self in (ValueType.UINT32, ValueType.INT32) else 1
+
+    @property
+    def bounds(self) -> tuple[int, int]:
+        bits = 16 * self.register_count
+        if self in (ValueType.INT16, ValueType.INT32):
+            return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+        return 0, (1 << bits) - 1
+
+
+class WordOrder(str, enum.Enum):
+    """Order of the two registers of a 32-bit value."""
+
+    HIGH_FIRST = 'high_first'
+    LOW_FIRST = 'low_first'
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One entry of the drive's parameter table (a register or register pair)."""
+
+    code: str
+    address: int
+    description: str
+    type: ValueType = ValueType.UINT16
+    scale: float = 1.0
+    unit: str = ''
+    minimum: float | None = None
+    maximum: float | None = None
+    default: float | None = None
+    access: Access = Access.READ_WRITE
+    options: Mapping[int, str] = field(default_factory=dict)
+    name: str = ''
+    word_order: WordOrder = WordOrder.HIGH_FIRST
+    source: str = ''
+    note: str = ''
+
+    @property
+    def register_count(self) -> int:
+        return self.type.register_count
+
+    @property
+    def writable(self) -> bool:
+        return self.access is not Access.READ_ONLY
+
+    def from_raw(self, raw: int) -> float:
+        """Engineering value of a raw (already sign-decoded) integer."""
+        return raw * self.scale
+
+    def to_raw(self, value: float) -> int:
+        """Validate an engineering value and return the raw integer to write.
+
+        Raises ParameterError (and nothing is written) when the value is not
+        finite, outside the manual's range, not a multiple of the resolution, not
+        one of the enumerated options, or does not fit the register type.
+        """
+        if not math.isfinite(value):
+            raise ParameterError(f'{self.code}: value {value} is not a finite number')
+        raw_float = value / self.scale
+        raw = round(raw_float)
+        if abs(raw_float - raw) > 1e-6 * max(1.0, abs(raw_float)):
+            raise ParameterError(
+                f'{self.code}: {value} is not a multiple of the resolution {self.scale:g}'
+                f'{self.unit}')
+        if self.minimum is not None and value < self.minimum - abs(self.scale) * 1e-6:
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is below the minimum {self.minimum:g}'
+                f'{self.unit}')
+        if self.maximum is not None and value > self.maximum + abs(self.scale) * 1e-6:
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is above the maximum {self.maximum:g}'
+                f'{self.unit}')
+        if self.options and raw not in self.options:
+            allowed = ', '.join(f'{k} ({v})' for k, v in sorted(self.options.items()))
+            raise ParameterError(f'{self.code}: {raw} is not one of the options: {allowed}')
+        low, high = self.type.bounds
+        if not low <= raw <= high:
+            raise ParameterError(
+                f'{self.code}: raw value {raw} does not fit {self.type.value}')
+        return raw
+
+    def option_text(self, raw: int) -> str:
+        return self.options.get(raw, '')
+
+
+@dataclass(frozen=True)
+class SerialDefaults:
+    """The drive's factory serial settings (used as transport defaults)."""
+
+    baudrate: int = 19200
+    parity: str = 'N'
+    stopbits: int = 1
+    bytesize: int = 8
+
+
+class PersistenceKind(str, enum.Enum):
+    """How a drive tells RAM-only writes from EEPROM writes."""
+
+    NONE = 'none'                      # every write goes where the drive decides
+    SWITCH_PARAMETER = 'switch_parameter'  # a parameter selects it for all writes
+    ADDRESS_OFFSET = 'address_offset'  # EEPROM address = RAM address + offset
+    ADDRESS_FLAG = 'address_flag'      # RAM-only address = address | flag
+
+
+@dataclass(frozen=True)
+class Persistence:
+    kind: PersistenceKind = PersistenceKind.NONE
+    parameter: str = ''
+    volatile_value: int = 0
+    persistent_value: int = 0
+    offset: int = 0
+    flag: int = 0
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class ModbusSpec:
+    """Modbus limits and conventions of the drive family."""
+
+    function_codes: frozenset[int] = frozenset({3, 6, 16})
+    max_read_registers: int = 125
+    max_write_registers: int = 123
+    gaps_readable: bool = False
+    serial: SerialDefaults = SerialDefaults()
+    # Exception code on the wire -> its meaning in this drive's manual.
+    exception_codes: Mapping[int, str] = field(default_factory=dict)
+    # What the drive answers in each situation (used by the simulated twin).
+    exception_for: Mapping[str, int] = field(default_factory=dict)
+    persistence: Persistence = Persistence()
+
+
+class SpeedUnit(str, enum.Enum):
+    """Engineering unit of a speed setpoint or feedback register."""
+
+    PERCENT = 'percent'   # percent of the motor's rated speed
+    HZ = 'hz'             # output / synchronous frequency
+    RPM = 'rpm'           # motor shaft speed
+
+
+class DirectionMode(str, enum.Enum):
+    """How the drive is told the direction of rotation."""
+
+    SETPOINT_SIGN = 'setpoint_sign'   # signed setpoint, one run command
+    COMMAND = 'command'               # unsigned setpoint, run_forward / run_reverse
+
+
+@dataclass(frozen=True)
+class VelocitySpec:
+    setpoint: str
+    setpoint_unit: SpeedUnit
+    feedback_unit: SpeedUnit
+    direction: DirectionMode = DirectionMode.SETPOINT_SIGN
+    rated_speed: str = ''      # parameter codes for the motor nameplate defaults
+    rated_frequency: str = ''
+    pole_pairs: str = ''
+    acceleration_time: str = ''
+    deceleration_time: str = ''
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class ControlSpec:
+    """The command register and the value written for each action."""
+
+    command: str
+    values: Mapping[str, int]
+    # Written just before a run command when the drive starts on a rising edge.
+    run_edge_from: int | None = None
+    note: str = ''
+
+    def action_of(self, value: int) -> str | None:
+        for action, action_value in self.values.items():
+            if action_value == value:
+                return action
+        return None
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A value polled from the drive, by role name (e.g. 'motor_speed')."""
+
+    role: str
+    code: str
+    bits: tuple[int, int] | None = None
+    every: int = 1
+
+    def extract(self, raw: int) -> int:
+        if self.bits is None:
+            return raw
+        low, high = self.bits
+        return (raw >> low) & ((1 << (high - low + 1)) - 1)
+
+
+class FlagRuleKind(str, enum.Enum):
+    NONZERO = 'nonzero'
+    ZERO = 'zero'
+    NEGATIVE = 'negative'
+    BIT = 'bit'
+    EQUALS = 'equals'
+
+
+@dataclass(frozen=True)
+class FlagRule:
+    """How a decoded status flag follows from a polled signal."""
+
+    signal: str
+    rule: FlagRuleKind
+    bit: int = 0
+    values: tuple[int, ...] = ()
+
+    def evaluate(self, value: float) -> bool:
+        if self.rule is FlagRuleKind.NONZERO:
+            return value != 0
+        if self.rule is FlagRuleKind.ZERO:
+            return value == 0
+        if self.rule is FlagRuleKind.NEGATIVE:
+            return value < 0
+        if self.rule is FlagRuleKind.BIT:
+            return bool(int(value) >> self.bit & 1)
+        return int(value) in self.values
+
+
+@dataclass(frozen=True)
+class FaultEntry:
+    code: int
+    name: str
+    remedy: str
+    cause: str = ''
+    subcodes: Mapping[int, str] = field(default_factory=dict)
+    confidence: str = 'high'
+    source: str = ''
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    code: str                  # parameter codes of the fault registers
+    subcode: str = ''
+    warning_code: str = ''
+    warning_subcode: str = ''
+    display_format: str = 'E{code}'
+    table: Mapping[int, FaultEntry] = field(default_factory=dict)
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class CommTimeoutSpec:
+    """The drive's own comm-loss watchdog (written at connect)."""
+
+    parameter: str
+    fault_code: int
+    fault_subcode: int = 0
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class CommissioningWrite:
+    """A parameter that must hold a value for the drive to obey the bus."""
+
+    code: str
+    value: float
+    why: str = ''
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    vendor: str
+    model: str
+    manual: str
+    transports: tuple[str, ...]
+    parameters: Mapping[str, Parameter]
+    modbus: ModbusSpec
+    velocity: VelocitySpec
+    control: ControlSpec
+    monitor: tuple[Signal, ...]
+    flags: Mapping[str, FlagRule]
+    status_words: tuple[str, ...]
+    faults: FaultSpec
+    comm_timeout: CommTimeoutSpec | None = None
+    commissioning: tuple[CommissioningWrite, ...] = ()
+    notes: tuple[str, ...] = ()
+    source_file: str = ''
+    _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
+    _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
+
+    def parameter(self, key: str) -> Parameter:
+        """Look a parameter up by function code (any case) or readable name."""
+        if key in self.parameters:
+            return self.parameters[key]
+        upper = key.strip().upper()
+        if upper in self.parameters:
+            return self.parameters[upper]
+        if key.strip() in self._by_name:
+            return self.parameters[self._by_name[key.strip()]]
+        raise ParameterError(
+            f'unknown parameter {key!r} for profile {self.name} '
+            '(use a function code such as those in the manual, or a readable name)')
+
+    def parameter_at(self, address: int) -> Parameter | None:
+        code = self._by_address.get(address)
+        return self.parameters[code] if code else None
+
+    def signal(self, role: str) -> Signal | None:
+        for signal in self.monitor:
+            if signal.role == role:
+                return signal
+        return None
+
+    @property
+    def names(self) -> Mapping[str, str]:
+        """Readable name -> function code."""
+        return self._by_name
+
+
+# --- loading ---------------------------------------------------------------
+
+class _Reader:
+    """Strict access to one YAML mapping: unknown keys are errors."""
+
+    def __init__(self, data: Any, where: str) -> None:
+        if not isinstance(data, Mapping):
+            raise ProfileError(f'{where}: expected a mapping, got {type(data).__name__}')
+        self.data = dict(data)
+        self.where = where
+        self.used: set[str] = set()
+
+    def get(self, key: str, default: Any = ..., kind: type | tuple[type, ...] | None = None):
+        self.used.add(key)
+        if key not in self.data:
+            if default is ...:
+                raise ProfileError(f'{self.where}: missing key {key!r}')
+            return default
+        value = self.data[key]
+        if kind is not None and not isinstance(value, kind):
+            raise ProfileError(f'{self.where}.{key}: expected {kind}, got {value!r}')
+        return value
+
+    def sub(self, key: str, default: Any = ...) -> '_Reader':
+        return _Reader(self.get(key, {} if default is ... else default), f'{self.where}.{key}')
+
+    def done(self) -> None:
+        extra = set(self.data) - self.used
+        if extra:
+            raise ProfileError(f'{self.where}: unknown keys {sorted(extra)}')
+
+
+def _number(value: Any, where: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProfileError(f'{where}: expected a number, got {value!r}')
+    return value
+
+
+def _enum(cls: type[enum.Enum], value: Any, where: str):
+    try:
+        return cls(value)
+    except ValueError:
+        allowed = ', '.join(member.value for member in cls)
+        raise ProfileError(f'{where}: {value!r} is not one of {allowed}') from None
+
+
+def _parameter(data: Any, where: str) -> Parameter:
+    r = _Reader(data, where)
+    code = str(r.get('code'))
+    value_type = _enum(ValueType, r.get('type', 'uint16'), f'{where}.type')
+    options = {int(k): str(v) for k, v in (r.get('options', {}) or {}).items()}
+    parameter = Parameter(
+        code=code,
+        address=int(r.get('address', kind=int)),
+        description=str(r.get('description')),
+        type=value_type,
+        scale=float(_number(r.get('scale', 1.0), f'{where}.scale')),
+        unit=str(r.get('unit', '') or ''),
+        minimum=_number(r.get('min', None), f'{where}.min'),
+        maximum=_number(r.get('max', None), f'{where}.max'),
+        default=_number(r.get('default', None), f'{where}.default'),
+        access=_enum(Access, r.get('access', 'rw'), f'{where}.access'),
+        options=options,
+        name=str(r.get('name', '') or ''),
+        word_order=_enum(WordOrder, r.get('word_order', 'high_first'), f'{where}.word_order'),
+        source=str(r.get('source', '') or ''),
+        note=str(r.get('note', '') or ''),
+    )
+    r.done()
+    if parameter.scale == 0:
+        raise ProfileError(f'{where}: scale must not be 0')
+    if not 0 <= parameter.address <= 0xFFFF:
+        raise ProfileError(f'{where}: address {parameter.address:#x} out of 16-bit range')
+    return parameter
+
+
+def _fault(data: Any, where: str) -> FaultEntry:
+    r = _Reader(data, where)
+    entry = FaultEntry(
+        code=int(r.get('code', kind=int)),
+        name=str(r.get('name')),
+        remedy=str(r.get('remedy', '') or ''),
+        cause=str(r.get('cause', '') or ''),
+        subcodes={int(k): str(v) for k, v in (r.get('subcodes', {}) or {}).items()},
+        confidence=str(r.get('confidence', 'high')),
+        source=str(r.get('source', '') or ''),
+        note=str(r.get('note', '') or ''),
+    )
+    r.done()
+    return entry
+
+
+def _signal(role: str, data: Any, where: str) -> Signal:
+    if isinstance(data, str):
+        return Signal(role=role, code=data)
+    r = _Reader(data, where)
+    bits = r.get('bits', None)
+    signal = Signal(
+        role=role,
+        code=str(r.get('code')),
+        bits=(int(bits[0]), int(bits[1])) if bits is not None else None,
+        every=int(r.get('every', 1)),
+    )
+    r.done()
+    return signal
+
+
+def _flag(data: Any, where: str) -> FlagRule:
+    r = _Reader(data, where)
+    rule = FlagRule(
+        signal=str(r.get('signal')),
+        rule=_enum(FlagRuleKind, r.get('rule'), f'{where}.rule'),
+        bit=int(r.get('bit', 0)),
+        values=tuple(int(v) for v in r.get('values', []) or []),
+    )
+    r.done()
+    return rule
+
+
+def _read_yaml(path: Path) -> Any:
+    try:
+        with path.open(encoding='utf-8') as stream:
+            return yaml.safe_load(stream)
+    except OSError as exc:
+        raise ProfileError(f'cannot read profile file {path}: {exc}') from exc
+    except yaml.YAMLError as exc:
+        raise ProfileError(f'profile file {path} is not valid YAML: {exc}') from exc
+
+
+def load_profile_file(path: Path | str) -> Profile:
+    """Load and validate one profile file (and the files it includes)."""
+    path = Path(path)
+    r = _Reader(_read_yaml(path), path.name)
+    if r.get('schema') != 1:
+        raise ProfileError(f'{path.name}: unsupported schema (expected schema: 1)')
+
+    parameters: dict[str, Parameter] = {}
+    raw_parameters = list(r.get('parameters', []) or [])
+    for include in r.get('parameter_tables', []) or []:
+        included = _Reader(_read_yaml(path.parent / include), include)
+        raw_parameters.extend(included.get('parameters', []) or [])
+        included.get('note', '')
+        included.get('source', '')
+        included.done()
+    for index, item in enumerate(raw_parameters):
+        parameter = _parameter(item, f'{path.name}.parameters[{index}]')
+        if parameter.code in parameters:
+            raise ProfileError(f'{path.name}: parameter {parameter.code} defined twice')
+        parameters[parameter.code] = parameter
+
+    by_name: dict[str, str] = {}
+    by_address: dict[int, str] = {}
+    for parameter in parameters.values():
+        if parameter.name:
+            if parameter.name in by_name:
+                raise ProfileError(f'{path.name}: readable name {parameter.name!r} used twice')
+            by_name[parameter.name] = parameter.code
+        by_address.setdefault(parameter.address, parameter.code)
+
+    mb = r.sub('modbus', {})
+    serial = mb.sub('serial', {})
+    serial_defaults = SerialDefaults(
+        baudrate=int(serial.get('baudrate', 19200)), parity=str(serial.get('parity', 'N')),
+        stopbits=int(serial.get('stopbits', 1)), bytesize=int(serial.get('bytesize', 8)))
+    serial.done()
+    pers = mb.sub('persistence', {})
+    persistence = Persistence(
+        kind=_enum(PersistenceKind, pers.get('kind', 'none'), 'modbus.persistence.kind'),
+        parameter=str(pers.get('parameter', '')),
+        volatile_value=int(pers.get('volatile_value', 0)),
+        persistent_value=int(pers.get('persistent_value', 0)),
+        offset=int(pers.get('offset', 0)),
+        flag=int(pers.get('flag', 0)),
+        note=str(pers.get('note', '')),
+    )
+    pers.done()
+    modbus = ModbusSpec(
+        function_codes=frozenset(int(c) for c in mb.get('function_codes', [3, 6, 16])),
+        max_read_registers=int(mb.get('max_read_registers', 125)),
+        max_write_registers=int(mb.get('max_write_registers', 123)),
+        gaps_readable=bool(mb.get('gaps_readable', False)),
+        serial=serial_defaults,
+        exception_codes={int(k): str(v) for k, v in (mb.get('exception_codes', {}) or {}).items()},
+        exception_for={str(k): int(v) for k, v in (mb.get('exception_for', {}) or {}).items()},
+        persistence=persistence,
+    )
+    mb.get('note', '')
+    mb.done()
+
+    vel = r.sub('velocity')
+    velocity = VelocitySpec(
+        setpoint=str(vel.get('setpoint')),
+        setpoint_unit=_enum(SpeedUnit, vel.get('setpoint_unit'), 'velocity.setpoint_unit'),
+        feedback_unit=_enum(SpeedUnit, vel.get('feedback_unit'), 'velocity.feedback_unit'),
+        direction=_enum(DirectionMode, vel.get('direction', 'setpoint_sign'),
+                        'velocity.direction'),
+        rated_speed=str(vel.get('rated_speed', '')),
+        rated_frequency=str(vel.get('rated_frequency', '')),
+        pole_pairs=str(vel.get('pole_pairs', '')),
+        acceleration_time=str(vel.get('acceleration_time', '')),
+        deceleration_time=str(vel.get('deceleration_time', '')),
+        note=str(vel.get('note', '')),
+    )
+    vel.done()
+
+    ctl = r.sub('control')
+    edge = ctl.get('run_edge_from', None)
+    control = ControlSpec(
+        command=str(ctl.get('command')),
+        values={str(k): int(v) for k, v in ctl.get('values', kind=Mapping).items()},
+        run_edge_from=int(edge) if edge is not None else None,
+        note=str(ctl.get('note', '')),
+    )
+    ctl.done()
+
+    mon = r.get('monitor', kind=Mapping)
+    monitor = tuple(_signal(str(role), data, f'monitor.{role}') for role, data in mon.items())
+    flags = {str(name): _flag(data, f'flags.{name}')
+             for name, data in (r.get('flags', {}) or {}).items()}
+
+    flt = r.sub('faults')
+    faults_display = str(flt.get('display_format', 'E{code}'))
+    table: dict[int, FaultEntry] = {}
+    for index, item in enumerate(flt.get('table', []) or []):
+        entry = _fault(item, f'faults.table[{index}]')
+        if entry.code in table:
+            raise ProfileError(f'{path.name}: fault code {entry.code} defined twice')
+        table[entry.code] = entry
+    faults = FaultSpec(
+        code=str(flt.get('code')), subcode=str(flt.get('subcode', '')),
+        warning_code=str(flt.get('warning_code', '')),
+        warning_subcode=str(flt.get('warning_subcode', '')),
+        display_format=faults_display, table=table, note=str(flt.get('note', '')))
+    flt.done()
+
+    comm_timeout = None
+    if 'comm_timeout' in r.data:
+        ct = r.sub('comm_timeout')
+        comm_timeout = CommTimeoutSpec(
+            parameter=str(ct.get('parameter')), fault_code=int(ct.get('fault_code')),
+            fault_subcode=int(ct.get('fault_subcode', 0)), note=str(ct.get('note', '')))
+        ct.done()
+    else:
+        r.get('comm_timeout', None)
+
+    commissioning = []
+    for index, item in enumerate(r.get('commissioning', []) or []):
+        cr = _Reader(item, f'commissioning[{index}]')
+        commissioning.append(CommissioningWrite(
+            code=str(cr.get('code')), value=float(cr.get('value')), why=str(cr.get('why', ''))))
+        cr.done()
+
+    profile = Profile(
+        name=str(r.get('name')),
+        vendor=str(r.get('vendor')),
+        model=str(r.get('model')),
+        manual=str(r.get('manual')),
+        transports=tuple(str(t) for t in r.get('transports', ['modbus_rtu'])),
+        parameters=parameters,
+        modbus=modbus,
+        velocity=velocity,
+        control=control,
+        monitor=monitor,
+        flags=flags,
+        status_words=tuple(str(c) for c in r.get('status_words', []) or []),
+        faults=faults,
+        comm_timeout=comm_timeout,
+        commissioning=tuple(commissioning),
+        notes=tuple(str(n) for n in r.get('notes', []) or []),
+        source_file=str(path),
+        _by_name=by_name,
+        _by_address=by_address,
+    )
+    r.done()
+    _check_references(profile)
+    return profile
+
+
+def _check_references(profile: Profile) -> None:
+    """Every code the profile names must be in its parameter table."""
+    where = profile.source_file
+    referenced = [
+        ('velocity.setpoint', profile.velocity.setpoint),
+        ('control.command', profile.control.command),
+        ('faults.code', profile.faults.code),
+    ]
+    for label in ('rated_speed', 'rated_frequency', 'pole_pairs',
+                  'acceleration_time', 'deceleration_time'):
+        code = getattr(profile.velocity, label)
+        if code:
+            referenced.append((f'velocity.{label}', code))
+    for label in ('subcode', 'warning_code', 'warning_subcode'):
+        code = getattr(profile.faults, label)
+        if code:
+            referenced.append((f'faults.{label}', code))
+    referenced += [(f'monitor.{s.role}', s.code) for s in profile.monitor]
+    referenced += [(f'status_words[{i}]', c) for i, c in enumerate(profile.status_words)]
+    referenced += [(f'commissioning.{c.code}', c.code) for c in profile.commissioning]
+    if profile.comm_timeout:
+        referenced.append(('comm_timeout.parameter', profile.comm_timeout.parameter))
+    if profile.modbus.persistence.kind is PersistenceKind.SWITCH_PARAMETER:
+        referenced.append(('modbus.persistence.parameter', profile.modbus.persistence.parameter))
+    for label, code in referenced:
+        if code not in profile.parameters:
+            raise ProfileError(f'{where}: {label} names {code!r}, not in the parameter table')
+    roles = {s.role for s in profile.monitor}
+    for name, rule in profile.flags.items():
+        if rule.signal not in roles:
+            raise ProfileError(f'{where}: flags.{name} uses signal {rule.signal!r}, '
+                               'which monitor does not define')
+    for required in ('run', 'stop', 'fault_reset'):
+        if required not in profile.control.values:
+            raise ProfileError(f'{where}: control.values needs {required!r}')
+    if profile.velocity.direction is DirectionMode.COMMAND and \
+            'run_reverse' not in profile.control.values:
+        raise ProfileError(f'{where}: direction "command" needs control.values.run_reverse')
+    for signal in profile.monitor:
+        if signal.every < 1:
+            raise ProfileError(f'{where}: monitor.{signal.role}.every must be >= 1')
+
+
+def available_profiles() -> list[str]:
+    """Names of the profiles shipped with the package."""
+    return sorted(p.stem for p in PROFILE_DIR.glob('*.yaml')
+                  if not p.stem.endswith('_parameters'))
+
+
+def load_profile(name_or_path: str) -> Profile:
+    """Load a shipped profile by name, or any profile file by path."""
+    candidate = Path(name_or_path)
+    if candidate.suffix in ('.yaml', '.yml'):
+        return load_profile_file(candidate)
+    path = PROFILE_DIR / f'{name_or_path}.yaml'
+    if not path.exists():
+        raise ProfileError(
+            f'unknown drive profile {name_or_path!r}; shipped profiles: '
+            f'{", ".join(available_profiles())}')
+    return load_profile_file(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Check profile files: ``python -m vfd_ros2.profile [name|path ...]``."""
+    import sys
+    names = (argv if argv is not None else sys.argv[1:]) or available_profiles()
+    status = 0
+    for name in names:
+        try:
+            profile = load_profile(name)
+        except ProfileError as exc:
+            print(f'FAIL {name}: {exc}')
+            status = 1
+            continue
+        print(f'ok   {profile.name}: {len(profile.parameters)} parameters, '
+              f'{len(profile.faults.table)} faults, {len(profile.monitor)} monitored signals')
+    return status
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
