@@ -1,0 +1,258 @@
+"""Drive verbs in SI units: a profile plus a register transport.
+
+No ROS here. Every method completes within a few transport timeouts or raises
+a ``VfdError``; the caller (``controller.py``) owns threads, timing and policy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+from .errors import ParameterError, ProfileError
+from .faults import NO_FAULT, FaultInfo, describe_fault
+from .profile import (Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal,
+                      SpeedUnit)
+from .registers import ReadBlock, decode_words, encode_words, plan_reads
+from .scaling import VelocityScaling
+from .transports.base import RegisterTransport
+
+#: monitor roles that map onto DriveStatus fields, with the SI unit they carry
+MEASURED_ROLES = ('output_frequency', 'output_current', 'dc_bus_voltage', 'temperature')
+
+
+@dataclass
+class Reading:
+    """What one poll cycle learnt (values keep their last reading between polls)."""
+
+    values: dict[str, float] = field(default_factory=dict)      # role -> engineering value
+    raw_words: dict[str, int] = field(default_factory=dict)     # code -> raw register value
+    flags: dict[str, bool] = field(default_factory=dict)
+    fault: FaultInfo = NO_FAULT
+    warning_code: int = 0
+    warning_subcode: int = 0
+    measured_velocity: float = math.nan
+
+
+@dataclass(frozen=True)
+class ParameterValue:
+    parameter: Parameter
+    raw: int
+    value: float
+
+    @property
+    def text(self) -> str:
+        return self.parameter.option_text(self.raw)
+
+
+class ModbusDrive:
+    """One drive on a register transport, driven through its profile."""
+
+    def __init__(self, profile: Profile, transport: RegisterTransport, unit_id: int,
+                 scaling: VelocityScaling) -> None:
+        if not 0 <= unit_id <= 247:
+            raise ParameterError(f'unit id {unit_id} is outside 0..247')
+        self.profile = profile
+        self.transport = transport
+        self.unit_id = unit_id
+        self.scaling = scaling
+        self._setpoint = profile.parameter(profile.velocity.setpoint)
+        self._command = profile.parameter(profile.control.command)
+        self._signals: list[tuple[Signal, Parameter]] = [
+            (signal, profile.parameter(signal.code)) for signal in profile.monitor]
+        self._status_words = [profile.parameter(code) for code in profile.status_words]
+        wanted = [(p.address, p.register_count) for _, p in self._signals]
+        wanted += [(p.address, p.register_count) for p in self._status_words]
+        readable = (lambda _address: True) if profile.modbus.gaps_readable else \
+            (lambda address: profile.parameter_at(address) is not None)
+        self.blocks: list[ReadBlock] = plan_reads(
+            wanted, profile.modbus.max_read_registers, readable)
+        self._block_every = {
+            block: min(s.every for s, p in self._signals if block.covers(p.address))
+            if any(block.covers(p.address) for _, p in self._signals) else 1
+            for block in self.blocks}
+        self._words: dict[int, int] = {}
+        self.asserted_command: str | None = None
+        self.last_setpoint_raw = 0
+
+    # --- link ---------------------------------------------------------------
+
+    @property
+    def hardware_id(self) -> str:
+        return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
+
+    def open(self) -> None:
+        self.transport.open()
+
+    def close(self) -> None:
+        self.transport.close()
+
+    def forget_state(self) -> None:
+        """After a link loss nothing read or written before is trusted."""
+        self._words.clear()
+        self.asserted_command = None
+
+    # --- register access ------------------------------------------------------
+
+    def _read(self, address: int, count: int) -> list[int]:
+        limit = self.profile.modbus.max_read_registers
+        words: list[int] = []
+        for offset in range(0, count, limit):
+            chunk = min(limit, count - offset)
+            words += self.transport.read_registers(self.unit_id, address + offset, chunk)
+        return words
+
+    def _write(self, address: int, words: list[int]) -> None:
+        codes = self.profile.modbus.function_codes
+        if len(words) == 1 and 6 in codes:
+            self.transport.write_register(self.unit_id, address, words[0])
+        elif 16 in codes and len(words) <= self.profile.modbus.max_write_registers:
+            self.transport.write_registers(self.unit_id, address, words)
+        elif 6 in codes:
+            # Drives without function 16 (e.g. 03/06 only): one write per register.
+            for offset, word in enumerate(words):
+                self.transport.write_register(self.unit_id, address + offset, word)
+        else:
+            raise ProfileError(f'{self.profile.name}: no write function code available')
+
+    def read_value(self, parameter: Parameter) -> ParameterValue:
+        raw = decode_words(parameter, self._read(parameter.address, parameter.register_count))
+        return ParameterValue(parameter, raw, parameter.from_raw(raw))
+
+    def write_raw(self, parameter: Parameter, raw: int, address: int | None = None) -> None:
+        self._write(parameter.address if address is None else address,
+                    encode_words(parameter, raw))
+
+    # --- control --------------------------------------------------------------
+
+    def _native_setpoint(self, velocity: float) -> tuple[int, str]:
+        """Output-shaft rad/s -> (raw setpoint, run action) within the register range."""
+        spec = self.profile.velocity
+        native = self.scaling.to_native(velocity, spec.setpoint_unit)
+        action = 'run'
+        if spec.direction is DirectionMode.COMMAND:
+            action = 'run_reverse' if native < 0 else 'run'
+            native = abs(native)
+        p = self._setpoint
+        low = p.minimum if p.minimum is not None else -math.inf
+        high = p.maximum if p.maximum is not None else math.inf
+        native = min(max(native, low), high)
+        raw = round(native / p.scale)
+        type_low, type_high = p.type.bounds
+        return min(max(raw, type_low), type_high), action
+
+    def write_setpoint(self, velocity: float) -> int:
+        raw, _ = self._native_setpoint(velocity)
+        self.write_raw(self._setpoint, raw)
+        self.last_setpoint_raw = raw
+        return raw
+
+    def send_command(self, action: str) -> None:
+        """Write the command register for ``action`` (run/stop/fault_reset/...)."""
+        values = self.profile.control.values
+        if action not in values:
+            raise ParameterError(f'{self.profile.name} has no {action!r} command')
+        self.write_raw(self._command, values[action])
+        self.asserted_command = action
+
+    def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None:
+        """One control cycle: write the setpoint, then (re)assert run or idle.
+
+        A run command is written only on a change (with the rising edge the
+        drive needs); the setpoint is written every cycle, which also feeds
+        the drive's own comm-loss timer.
+        """
+        raw, run_action = self._native_setpoint(velocity if run else 0.0)
+        self.write_raw(self._setpoint, raw)
+        self.last_setpoint_raw = raw
+        wanted = run_action if run else idle_action
+        if wanted == self.asserted_command:
+            return
+        if run and self.asserted_command not in ('run', 'run_reverse') and \
+                self.profile.control.run_edge_from is not None:
+            self.write_raw(self._command, self.profile.control.run_edge_from)
+        self.send_command(wanted)
+
+    # --- status ---------------------------------------------------------------
+
+    def poll(self, cycle: int) -> Reading:
+        """Read the blocks due this cycle and decode everything known so far."""
+        for block in self.blocks:
+            if cycle % self._block_every[block] == 0 or block.start not in self._words:
+                for offset, word in enumerate(self._read(block.start, block.count)):
+                    self._words[block.start + offset] = word
+        reading = Reading()
+        for signal, parameter in self._signals:
+            words = [self._words.get(parameter.address + i) for i in
+                     range(parameter.register_count)]
+            if None in words:
+                continue
+            raw = signal.extract(decode_words(parameter, words))
+            reading.values[signal.role] = raw if signal.bits else parameter.from_raw(raw)
+        for parameter in self._status_words:
+            if parameter.address in self._words:
+                reading.raw_words[parameter.code] = self._words[parameter.address]
+        for name, rule in self.profile.flags.items():
+            if rule.signal in reading.values:
+                reading.flags[name] = rule.evaluate(reading.values[rule.signal])
+        values = reading.values
+        reading.fault = describe_fault(self.profile.faults, int(values.get('fault_code', 0)),
+                                       int(values.get('fault_subcode', 0)))
+        reading.warning_code = int(values.get('warning_code', 0))
+        reading.warning_subcode = int(values.get('warning_subcode', 0))
+        reading.measured_velocity = self._measured_velocity(values)
+        return reading
+
+    def _measured_velocity(self, values: Mapping[str, float]) -> float:
+        if 'motor_speed' in values:
+            return self.scaling.from_native(values['motor_speed'],
+                                            self.profile.velocity.feedback_unit)
+        if 'output_frequency' in values:
+            return self.scaling.from_native(values['output_frequency'], SpeedUnit.HZ)
+        return math.nan
+
+    # --- parameters -------------------------------------------------------------
+
+    def get_parameter(self, key: str) -> ParameterValue:
+        return self.read_value(self.profile.parameter(key))
+
+    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
+        """Validate a write without touching the drive; ParameterError says why not."""
+        parameter = self.profile.parameter(key)
+        if parameter.access is Access.READ_ONLY:
+            raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
+        if parameter.access is Access.WRITE_WHEN_STOPPED and running:
+            raise ParameterError(
+                f'{parameter.code} can only be changed while the drive is stopped')
+        return parameter, parameter.to_raw(value)
+
+    def set_parameter(self, key: str, value: float, persistent: bool,
+                      running: bool) -> tuple[ParameterValue, str]:
+        """Validate, write (RAM or EEPROM as asked), read back. Returns (value, note)."""
+        parameter, raw = self.check_write(key, value, running)
+        persistence = self.profile.modbus.persistence
+        address = parameter.address
+        note = ''
+        if persistence.kind is PersistenceKind.NONE:
+            note = 'this drive does not distinguish RAM and EEPROM writes'
+        elif persistence.kind is PersistenceKind.ADDRESS_OFFSET and persistent:
+            address = parameter.address + persistence.offset
+        elif persistence.kind is PersistenceKind.ADDRESS_FLAG and not persistent:
+            address = parameter.address | persistence.flag
+        elif persistence.kind is PersistenceKind.SWITCH_PARAMETER and \
+                parameter.code != persistence.parameter:
+            switch = self.profile.parameter(persistence.parameter)
+            wanted = persistence.persistent_value if persistent else persistence.volatile_value
+            if self.read_value(switch).raw != wanted:
+                self.write_raw(switch, wanted)
+                note = f'{switch.code} set to {wanted} first'
+        self.write_raw(parameter, raw, address)
+        readback = self.read_value(parameter)
+        if readback.raw != raw:
+            raise ParameterError(
+                f'{parameter.code}: wrote {raw} but the drive holds {readback.raw}')
+        where = 'EEPROM' if persistent else 'RAM'
+        if persistence.kind is not PersistenceKind.NONE:
+            note = f'{where} write' + (f'; {note}' if note else '')
+        return readback, note

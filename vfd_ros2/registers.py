@@ -1,0 +1,72 @@
+"""Pure register codecs: signedness, 32-bit word order, read planning."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+from .profile import Parameter, ValueType, WordOrder
+
+
+def to_signed(raw: int, bits: int) -> int:
+    raw &= (1 << bits) - 1
+    return raw - (1 << bits) if raw >> (bits - 1) else raw
+
+
+def decode_words(parameter: Parameter, words: list[int]) -> int:
+    """Registers as read -> the parameter's raw integer (sign applied)."""
+    if parameter.register_count == 1:
+        raw = words[0] & 0xFFFF
+    else:
+        high, low = (words[0], words[1]) if parameter.word_order is WordOrder.HIGH_FIRST \
+            else (words[1], words[0])
+        raw = ((high & 0xFFFF) << 16) | (low & 0xFFFF)
+    if parameter.type is ValueType.INT16:
+        return to_signed(raw, 16)
+    if parameter.type is ValueType.INT32:
+        return to_signed(raw, 32)
+    return raw
+
+
+def encode_words(parameter: Parameter, raw: int) -> list[int]:
+    """The parameter's raw integer -> the registers to write."""
+    if parameter.register_count == 1:
+        return [raw & 0xFFFF]
+    value = raw & 0xFFFFFFFF
+    high, low = value >> 16, value & 0xFFFF
+    return [high, low] if parameter.word_order is WordOrder.HIGH_FIRST else [low, high]
+
+
+@dataclass(frozen=True)
+class ReadBlock:
+    """One read request: ``count`` registers from ``start``."""
+
+    start: int
+    count: int
+
+    def covers(self, address: int, count: int = 1) -> bool:
+        return self.start <= address and address + count <= self.start + self.count
+
+
+def plan_reads(spans: Iterable[tuple[int, int]], max_registers: int,
+               readable: Callable[[int], bool]) -> list[ReadBlock]:
+    """Fewest read requests covering every (address, count) span.
+
+    A block grows over the gap to the next wanted address only if it stays
+    within ``max_registers`` and every address in the gap is ``readable``
+    (documented), because many drives refuse reads across undocumented ones.
+    """
+    wanted = sorted({address + i for address, count in spans for i in range(count)})
+    blocks: list[ReadBlock] = []
+    start = last = None
+    for address in wanted:
+        if start is not None and address - start < max_registers and all(
+                readable(gap) for gap in range(last + 1, address)):
+            last = address
+            continue
+        if start is not None:
+            blocks.append(ReadBlock(start, last - start + 1))
+        start = last = address
+    if start is not None:
+        blocks.append(ReadBlock(start, last - start + 1))
+    return blocks

@@ -1,0 +1,90 @@
+"""The contract every register transport fulfils."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping
+
+from ..profile import Profile
+
+
+@dataclass(frozen=True)
+class TransportParameter:
+    """A setting the node declares as ``transport.<name>`` for this transport."""
+
+    name: str
+    default: Any
+    description: str
+
+
+@dataclass
+class TransportStats:
+    """Counters of one transport since it was created."""
+
+    transactions: int = 0
+    timeouts: int = 0
+    bad_frames: int = 0
+    exceptions: int = 0
+    connect_failures: int = 0
+
+    @property
+    def errors(self) -> int:
+        return self.timeouts + self.bad_frames + self.exceptions + self.connect_failures
+
+
+class RegisterTransport(abc.ABC):
+    """Moves 16-bit register values to and from one unit on a link.
+
+    Implementations know nothing of drives, scaling or ROS. Every method either
+    completes within the configured timeout or raises a ``TransportError`` /
+    ``ProtocolException``; none may block indefinitely. Calls come from one
+    thread at a time.
+    """
+
+    #: settings the node declares for this transport (name, default, description)
+    parameters: ClassVar[tuple[TransportParameter, ...]] = ()
+
+    def __init__(self) -> None:
+        self.stats = TransportStats()
+
+    @classmethod
+    @abc.abstractmethod
+    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> 'RegisterTransport':
+        """Build from the node's ``transport.*`` values.
+
+        The profile supplies the drive's factory link settings (used where a
+        setting is 0 or empty) and its exception-code meanings.
+        """
+
+    @property
+    @abc.abstractmethod
+    def description(self) -> str:
+        """Where this transport talks, for hardware ids and logs."""
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Open the link (idempotent). Raises TransportError if it cannot."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Close the link (idempotent, never raises)."""
+
+    @abc.abstractmethod
+    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
+        """Read ``count`` holding registers starting at ``address``."""
+
+    @abc.abstractmethod
+    def write_register(self, unit: int, address: int, value: int) -> None:
+        """Write one holding register (value 0..0xFFFF)."""
+
+    @abc.abstractmethod
+    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
+        """Write consecutive holding registers in one request."""
+
+    def __enter__(self) -> 'RegisterTransport':
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
