@@ -1,2 +1,215 @@
-def main():
-    print('hello')
+"""drive_node: one ROS 2 node per drive.
+
+Topics (relative to the node, e.g. /agv/left_wheel/drive/...):
+  ~/velocity_command  std_msgs/Float64        in: rad/s at the output shaft
+  ~/status            vfd_ros2/DriveStatus    out: at status_rate
+  ~/fault             vfd_ros2/DriveFault     out: on change, transient local
+  /diagnostics        diagnostic_msgs/DiagnosticArray
+Services:
+  ~/get_drive_parameter, ~/set_drive_parameter   vfd_ros2/srv/...
+  ~/enable, ~/disable, ~/stop, ~/reset_fault     std_srvs/Trigger
+
+All drive I/O happens in the controller's own thread; callbacks here only
+hand over commands and wait for results, and none of them lets an exception
+reach the executor.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
+
+from vfd_ros2.msg import DriveFault, DriveStatus
+from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
+
+from .config import SETTINGS, build_controller
+from .controller import CommandOutcome, DriveController
+from .errors import VfdError
+from .faults import NO_FAULT
+from .messages import diagnostic_status, fault_message, status_message
+from .transports import load_transport_class
+
+FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                       reliability=ReliabilityPolicy.RELIABLE)
+
+
+class DriveNode(Node):
+    """ROS face of one drive; all drive logic lives in DriveController."""
+
+    def __init__(self, node_name: str = 'drive', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
+        transport_class = load_transport_class(str(values['transport.type']))
+        for setting in transport_class.parameters:
+            name = f'transport.{setting.name}'
+            values[name] = self._declare(name, setting.default, setting.description)
+        self.controller: DriveController = build_controller(values)
+        self.profile_name = self.controller.drive.profile.name
+        self.frame_id = str(values['frame_id'])
+        self._ever_online = False
+        self._last_fault = NO_FAULT
+        self._fault_published = False
+
+        io_group = MutuallyExclusiveCallbackGroup()
+        service_group = ReentrantCallbackGroup()
+        self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
+        self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10,
+                                 callback_group=io_group)
+        self.create_service(GetDriveParameter, '~/get_drive_parameter', self._on_get_parameter,
+                            callback_group=service_group)
+        self.create_service(SetDriveParameter, '~/set_drive_parameter', self._on_set_parameter,
+                            callback_group=service_group)
+        for action in ('enable', 'disable', 'stop', 'reset_fault'):
+            self.create_service(Trigger, f'~/{action}', self._trigger_handler(action),
+                                callback_group=service_group)
+        self.create_timer(1.0 / float(values['status_rate']), self._publish_status,
+                          callback_group=io_group)
+        self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics,
+                          callback_group=io_group)
+        self._service_timeout = (float(values['stop_timeout']) +
+                                 float(values['action_timeout']) + 2.0)
+        self.controller.start()
+        self.get_logger().info(
+            f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
+
+    def _declare(self, name: str, default: Any, description: str) -> Any:
+        return self.declare_parameter(
+            name, default, ParameterDescriptor(description=description)).value
+
+    # --- topics -----------------------------------------------------------------
+
+    def _on_velocity(self, msg: Float64) -> None:
+        try:
+            outcome = self.controller.command_velocity(msg.data)
+            if outcome is CommandOutcome.REJECTED:
+                self.get_logger().warning(
+                    f'rejected velocity command {msg.data}: not a finite number',
+                    throttle_duration_sec=1.0)
+            elif outcome is CommandOutcome.CLAMPED:
+                self.get_logger().warning(
+                    f'velocity command {msg.data} clamped to max_velocity '
+                    f'{self.controller.config.max_velocity}', throttle_duration_sec=1.0)
+        except Exception as exc:  # noqa: BLE001 - never raise into the executor
+            self.get_logger().error(f'velocity command failed: {exc}')
+
+    def _publish_status(self) -> None:
+        try:
+            state = self.controller.state
+            self._ever_online |= state.online
+            stamp = self.get_clock().now().to_msg()
+            self.status_pub.publish(status_message(state, stamp, self.frame_id,
+                                                   self.profile_name))
+            fault = state.active_fault
+            if not self._fault_published or (fault.code, fault.subcode) != \
+                    (self._last_fault.code, self._last_fault.subcode):
+                # A cleared fault is published once as inactive with its last code.
+                shown, active = (fault, True) if fault.active else (self._last_fault, False)
+                self.fault_pub.publish(fault_message(shown, active, stamp, state.hardware_id))
+                self._last_fault = fault
+                self._fault_published = True
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f'status publishing failed: {exc}',
+                                    throttle_duration_sec=5.0)
+
+    def _publish_diagnostics(self) -> None:
+        try:
+            array = DiagnosticArray()
+            array.header.stamp = self.get_clock().now().to_msg()
+            name = f'{self.get_fully_qualified_name().lstrip("/")}: drive'
+            array.status = [diagnostic_status(self.controller.state, name, self._ever_online)]
+            self.diagnostics_pub.publish(array)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)
+
+    # --- services ---------------------------------------------------------------
+
+    def _wait(self, action: str, *args: object):
+        return self.controller.submit(action, *args).result(timeout=self._service_timeout)
+
+    def _trigger_handler(self, action: str):
+        def handle(_request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+            try:
+                result = self._wait(action)
+                response.success, response.message = result.success, result.message
+            except Exception as exc:  # noqa: BLE001
+                response.success, response.message = False, f'{action} failed: {exc}'
+            (self.get_logger().info if response.success else self.get_logger().warning)(
+                f'{action}: {response.message}')
+            return response
+        return handle
+
+    def _on_get_parameter(self, request: GetDriveParameter.Request,
+                          response: GetDriveParameter.Response) -> GetDriveParameter.Response:
+        try:
+            result = self._wait('get_parameter', request.name)
+            response.success, response.message = result.success, result.message
+            if result.value is not None:
+                value = result.value
+                parameter = value.parameter
+                response.name = parameter.name
+                response.code = parameter.code
+                response.value = float(value.value)
+                response.raw_value = int(value.raw)
+                response.unit = parameter.unit
+                response.value_text = value.text
+                response.minimum = float(parameter.minimum) if parameter.minimum is not None \
+                    else -math.inf
+                response.maximum = float(parameter.maximum) if parameter.maximum is not None \
+                    else math.inf
+                response.writable = parameter.writable
+        except Exception as exc:  # noqa: BLE001
+            response.success, response.message = False, f'get failed: {exc}'
+        return response
+
+    def _on_set_parameter(self, request: SetDriveParameter.Request,
+                          response: SetDriveParameter.Response) -> SetDriveParameter.Response:
+        try:
+            result = self._wait('set_parameter', request.name, float(request.value),
+                                bool(request.persistent))
+            response.success, response.message = result.success, result.message
+            if result.value is not None:
+                response.value = float(result.value.value)
+                response.raw_value = int(result.value.raw)
+                response.unit = result.value.parameter.unit
+        except Exception as exc:  # noqa: BLE001
+            response.success, response.message = False, f'set failed: {exc}'
+        if not response.success:
+            self.get_logger().warning(f'set {request.name}={request.value}: {response.message}')
+        return response
+
+    def destroy_node(self) -> None:
+        # Commands the drive to stop before the port closes.
+        self.controller.shutdown()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = DriveNode()
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except VfdError as exc:
+        print(f'drive_node: {exc}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,107 @@
+"""The driver's settings: one table of parameters, and what they build.
+
+The node declares every entry below as a ROS parameter (plus the selected
+transport's own ``transport.*`` settings) and hands the values to
+``build_controller``; tests and tools call ``build_controller`` directly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from .controller import ControllerConfig, DriveController
+from .drive import ModbusDrive
+from .errors import ParameterError
+from .profile import Profile, load_profile
+from .scaling import VelocityScaling
+from .transports import load_transport_class
+
+
+@dataclass(frozen=True)
+class Setting:
+    name: str
+    default: Any
+    description: str
+
+
+SETTINGS: tuple[Setting, ...] = (
+    Setting('drive.profile', 'boneng_am', 'drive family: a shipped profile name or a YAML path'),
+    Setting('transport.type', 'modbus_rtu', 'transport plugin: modbus_rtu, modbus_tcp, ...'),
+    Setting('transport.unit_id', 1, 'the drive\'s address on the link (Modbus slave id)'),
+    Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn (> 0)'),
+    Setting('invert_direction', False, 'reverse the sign between ROS and the drive'),
+    Setting('motor.rated_speed_rpm', 0.0,
+            'motor rated speed = 100 % setpoint; 0 = the profile\'s nameplate default'),
+    Setting('motor.pole_pairs', 0, 'motor pole pairs (Hz <-> rpm); 0 = profile default'),
+    Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped'),
+    Setting('command_timeout', 0.5, 's without a valid velocity command before the drive stops'),
+    Setting('control_rate', 50.0, 'Hz of the command/poll cycle'),
+    Setting('status_rate', 20.0, 'Hz of ~/status'),
+    Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics'),
+    Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline'),
+    Setting('reconnect_period', 0.5, 's between reconnect attempts'),
+    Setting('drive_comm_timeout', 0.3,
+            's written to the drive\'s own comm-loss timeout at connect; 0 = disable it'),
+    Setting('apply_commissioning', True,
+            'write the profile\'s bus-control settings at connect when they differ'),
+    Setting('auto_enable', False, 'enable at start-up (motion still needs fresh commands)'),
+    Setting('action_timeout', 2.0, 's to verify enable and reset_fault'),
+    Setting('stop_timeout', 10.0, 's to verify stop and disable (covers the deceleration)'),
+    Setting('frame_id', '', 'header.frame_id of ~/status'),
+)
+
+
+def transport_settings(values: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``transport.*`` values with the prefix removed."""
+    return {key.split('.', 1)[1]: value for key, value in values.items()
+            if key.startswith('transport.')}
+
+
+def velocity_scaling(profile: Profile, values: Mapping[str, Any]) -> VelocityScaling:
+    """Gear, direction and motor nameplate (0 = the profile's default)."""
+    def nameplate(setting: str, code: str, fallback: float) -> float:
+        configured = float(values.get(setting, 0) or 0)
+        if configured:
+            return configured
+        if code and profile.parameters[code].default:
+            return float(profile.parameters[code].default)
+        return fallback
+    return VelocityScaling(
+        gear_ratio=float(values['gear_ratio']),
+        invert_direction=bool(values['invert_direction']),
+        rated_speed_rpm=nameplate('motor.rated_speed_rpm', profile.velocity.rated_speed, 1500.0),
+        pole_pairs=int(nameplate('motor.pole_pairs', profile.velocity.pole_pairs, 2)),
+    )
+
+
+def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
+    rate = float(values['control_rate'])
+    if not rate > 0:
+        raise ParameterError(f'control_rate must be > 0, got {rate}')
+    return ControllerConfig(
+        command_timeout=float(values['command_timeout']),
+        max_velocity=float(values['max_velocity']),
+        cycle_period=1.0 / rate,
+        comm_loss_threshold=int(values['comm_loss_threshold']),
+        reconnect_period=float(values['reconnect_period']),
+        drive_comm_timeout=float(values['drive_comm_timeout']),
+        apply_commissioning=bool(values['apply_commissioning']),
+        auto_enable=bool(values['auto_enable']),
+        action_timeout=float(values['action_timeout']),
+        stop_timeout=float(values['stop_timeout']),
+    )
+
+
+def build_controller(values: Mapping[str, Any]) -> DriveController:
+    """Profile + transport + drive + loop from flat settings; raises VfdError."""
+    merged = {s.name: s.default for s in SETTINGS}
+    merged.update(values)
+    profile = load_profile(str(merged['drive.profile']))
+    transport_class = load_transport_class(str(merged['transport.type']))
+    settings = {p.name: p.default for p in transport_class.parameters}
+    settings.update(transport_settings(merged))
+    transport = transport_class.from_settings(settings, profile)
+    drive = ModbusDrive(profile, transport, int(merged['transport.unit_id']),
+                        velocity_scaling(profile, merged))
+    return DriveController(drive, controller_config(merged))

@@ -1,0 +1,114 @@
+"""DriveState -> ROS messages (pure functions, no node needed)."""
+
+from __future__ import annotations
+
+import math
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+from vfd_ros2.msg import DriveFault, DriveStatus
+
+from .controller import DriveState
+from .faults import FaultInfo
+
+
+def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) -> DriveStatus:
+    msg = DriveStatus()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.online = state.online
+    msg.hardware_id = state.hardware_id
+    msg.profile = profile
+    msg.ready = state.ready
+    msg.enabled = state.enabled
+    msg.running = state.running
+    msg.reverse = state.reverse
+    msg.fault = state.fault
+    msg.warning = state.warning
+    msg.at_speed = state.at_speed
+    msg.watchdog_tripped = state.watchdog_tripped
+    msg.state = state.state
+    msg.stop_reason = state.stop_reason
+    msg.status_word_names = [name for name, _ in state.status_words]
+    msg.status_words_raw = [value & 0xFFFF for _, value in state.status_words]
+    msg.commanded_velocity = float(state.commanded_velocity)
+    msg.measured_velocity = float(state.measured_velocity)
+    msg.setpoint_raw = int(state.setpoint_raw)
+    measured = state.measured
+    msg.output_frequency = float(measured.get('output_frequency', math.nan))
+    msg.output_current = float(measured.get('output_current', math.nan))
+    msg.dc_bus_voltage = float(measured.get('dc_bus_voltage', math.nan))
+    msg.temperature = float(measured.get('temperature', math.nan))
+    msg.fault_code = state.active_fault.code & 0xFFFF
+    msg.fault_subcode = state.active_fault.subcode & 0xFFFF
+    msg.warning_code = state.warning_code & 0xFFFF
+    msg.warning_subcode = state.warning_subcode & 0xFFFF
+    for counter in ('transactions', 'comm_errors', 'timeouts', 'bad_frames', 'exceptions',
+                    'reconnects', 'rejected_commands', 'clamped_commands'):
+        setattr(msg, counter, min(getattr(state, counter), 0xFFFFFFFF))
+    return msg
+
+
+def fault_message(fault: FaultInfo, active: bool, stamp: Time, hardware_id: str) -> DriveFault:
+    msg = DriveFault()
+    msg.stamp = stamp
+    msg.hardware_id = hardware_id
+    msg.active = active
+    msg.code = fault.code & 0xFFFF
+    msg.subcode = fault.subcode & 0xFFFF
+    msg.display = fault.display
+    msg.name = fault.name
+    msg.cause = fault.cause
+    msg.remedy = fault.remedy
+    msg.known = fault.known
+    return msg
+
+
+def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> DiagnosticStatus:
+    """One /diagnostics entry for the drive (aggregator-friendly name and keys)."""
+    status = DiagnosticStatus()
+    status.name = name
+    status.hardware_id = state.hardware_id
+    if not state.online:
+        status.level = DiagnosticStatus.ERROR if ever_online else DiagnosticStatus.STALE
+        status.message = f'offline: {state.last_error or "no reply"}'
+    elif state.fault:
+        fault = state.active_fault
+        status.level = DiagnosticStatus.ERROR
+        status.message = f'fault {fault.display} {fault.name}'
+    elif state.warning:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'warning {state.warning_code}.{state.warning_subcode}'
+    else:
+        status.level = DiagnosticStatus.OK
+        status.message = state.state if not state.stop_reason else \
+            f'{state.state}: {state.stop_reason}'
+    fault = state.active_fault
+    pairs = [
+        ('state', state.state),
+        ('stop reason', state.stop_reason),
+        ('online', state.online),
+        ('enabled', state.enabled),
+        ('running', state.running),
+        ('commanded velocity (rad/s)', f'{state.commanded_velocity:.4f}'),
+        ('measured velocity (rad/s)', f'{state.measured_velocity:.4f}'),
+        ('output frequency (Hz)', state.measured.get('output_frequency', math.nan)),
+        ('output current (A)', state.measured.get('output_current', math.nan)),
+        ('DC bus voltage (V)', state.measured.get('dc_bus_voltage', math.nan)),
+        ('temperature (degC)', state.measured.get('temperature', math.nan)),
+        ('fault', f'{fault.display} {fault.name}'.strip() if fault.active else 'none'),
+        ('fault remedy', fault.remedy if fault.active else ''),
+        ('warning code', state.warning_code),
+        ('transactions', state.transactions),
+        ('comm errors', state.comm_errors),
+        ('timeouts', state.timeouts),
+        ('bad frames', state.bad_frames),
+        ('exceptions', state.exceptions),
+        ('reconnects', state.reconnects),
+        ('rejected commands', state.rejected_commands),
+        ('clamped commands', state.clamped_commands),
+        ('last error', state.last_error),
+    ]
+    status.values = [KeyValue(key=key, value=str(value)) for key, value in pairs]
+    return status
