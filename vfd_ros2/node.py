@@ -9,9 +9,11 @@ Services:
   ~/get_drive_parameter, ~/set_drive_parameter   vfd_ros2/srv/...
   ~/enable, ~/disable, ~/stop, ~/reset_fault     std_srvs/Trigger
 
-All drive I/O happens in the controller's own thread; callbacks here only
-hand over commands and wait for results, and none of them lets an exception
-reach the executor.
+All drive I/O happens in the controller's own thread. Callbacks here only hand
+over commands; service callbacks are coroutines that await the controller's
+result, so one single-threaded executor serves everything and a slow service
+(a stop that waits for the ramp) never holds up status or commands. None of
+them lets an exception reach the executor.
 """
 
 from __future__ import annotations
@@ -22,10 +24,10 @@ from typing import Any
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -60,26 +62,16 @@ class DriveNode(Node):
         self._last_fault = NO_FAULT
         self._fault_published = False
 
-        io_group = MutuallyExclusiveCallbackGroup()
-        service_group = ReentrantCallbackGroup()
         self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
         self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10,
-                                 callback_group=io_group)
-        self.create_service(GetDriveParameter, '~/get_drive_parameter', self._on_get_parameter,
-                            callback_group=service_group)
-        self.create_service(SetDriveParameter, '~/set_drive_parameter', self._on_set_parameter,
-                            callback_group=service_group)
+        self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
+        self.create_service(GetDriveParameter, '~/get_drive_parameter', self._on_get_parameter)
+        self.create_service(SetDriveParameter, '~/set_drive_parameter', self._on_set_parameter)
         for action in ('enable', 'disable', 'stop', 'reset_fault'):
-            self.create_service(Trigger, f'~/{action}', self._trigger_handler(action),
-                                callback_group=service_group)
-        self.create_timer(1.0 / float(values['status_rate']), self._publish_status,
-                          callback_group=io_group)
-        self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics,
-                          callback_group=io_group)
-        self._service_timeout = (float(values['stop_timeout']) +
-                                 float(values['action_timeout']) + 2.0)
+            self.create_service(Trigger, f'~/{action}', self._trigger_handler(action))
+        self.create_timer(1.0 / float(values['status_rate']), self._publish_status)
+        self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics)
         self.controller.start()
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
@@ -135,25 +127,33 @@ class DriveNode(Node):
 
     # --- services ---------------------------------------------------------------
 
-    def _wait(self, action: str, *args: object):
-        return self.controller.submit(action, *args).result(timeout=self._service_timeout)
+    async def _wait(self, action: str, *args: object):
+        """Await the controller's result without blocking the executor."""
+        done = Future(executor=self.executor)
+        done.add_done_callback(lambda _future: None)   # wakes the executor on completion
+        self.controller.submit(action, *args).add_done_callback(
+            lambda result: done.set_result(result.result()))
+        return await done
 
     def _trigger_handler(self, action: str):
-        def handle(_request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        async def handle(_request: Trigger.Request,
+                         response: Trigger.Response) -> Trigger.Response:
             try:
-                result = self._wait(action)
+                result = await self._wait(action)
                 response.success, response.message = result.success, result.message
             except Exception as exc:  # noqa: BLE001
                 response.success, response.message = False, f'{action} failed: {exc}'
-            (self.get_logger().info if response.success else self.get_logger().warning)(
-                f'{action}: {response.message}')
+            if response.success:
+                self.get_logger().info(f'{action}: {response.message}')
+            else:
+                self.get_logger().warning(f'{action} refused: {response.message}')
             return response
         return handle
 
-    def _on_get_parameter(self, request: GetDriveParameter.Request,
+    async def _on_get_parameter(self, request: GetDriveParameter.Request,
                           response: GetDriveParameter.Response) -> GetDriveParameter.Response:
         try:
-            result = self._wait('get_parameter', request.name)
+            result = await self._wait('get_parameter', request.name)
             response.success, response.message = result.success, result.message
             if result.value is not None:
                 value = result.value
@@ -173,10 +173,10 @@ class DriveNode(Node):
             response.success, response.message = False, f'get failed: {exc}'
         return response
 
-    def _on_set_parameter(self, request: SetDriveParameter.Request,
+    async def _on_set_parameter(self, request: SetDriveParameter.Request,
                           response: SetDriveParameter.Response) -> SetDriveParameter.Response:
         try:
-            result = self._wait('set_parameter', request.name, float(request.value),
+            result = await self._wait('set_parameter', request.name, float(request.value),
                                 bool(request.persistent))
             response.success, response.message = result.success, result.message
             if result.value is not None:
@@ -200,7 +200,7 @@ def main(args: list[str] | None = None) -> int:
     node = None
     try:
         node = DriveNode()
-        executor = MultiThreadedExecutor(num_threads=4)
+        executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

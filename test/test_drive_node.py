@@ -1,0 +1,288 @@
+"""drive_node <-> simulated BONENG AM drive over real Modbus RTU frames on a pty."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from harness import wait_for
+from pymodbus.framer import FramerRTU
+
+from vfd_ros2.scaling import RPM_PER_RAD_S
+from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
+
+RATED_RPM = 1330.0   # D00.05 default: 100 % setpoint
+GEAR = 10.0
+
+
+def write_frame(address: int, value: int, unit: int = 1) -> bytes:
+    body = bytes([unit, 0x06]) + address.to_bytes(2, 'big') + (value & 0xFFFF).to_bytes(2, 'big')
+    return body + FramerRTU.compute_CRC(body).to_bytes(2, 'big')
+
+
+def expected_raw(velocity: float) -> int:
+    return round(velocity * GEAR * RPM_PER_RAD_S / RATED_RPM * 1000)
+
+
+def test_velocity_command_reaches_wire_and_motor(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    since = time.monotonic()
+    h.stream(2.0)
+    status = h.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.02,
+                           5.0, 'motor at 2 rad/s')
+    # The setpoint write is on the wire, byte for byte, as the manual's frames.
+    frames = h.frames_after(since)
+    assert write_frame(0xE721, expected_raw(2.0)) in frames
+    assert write_frame(0xE720, 1) in frames                        # run
+    assert abs(h.sim.speed_rpm - 2.0 * GEAR * RPM_PER_RAD_S) < 2.0
+    assert status.commanded_velocity == 2.0
+    assert status.setpoint_raw == expected_raw(2.0)
+    assert status.online and status.enabled and not status.fault
+    assert status.stop_reason == ''
+    # Measured values decoded in SI units.
+    assert abs(status.output_frequency - h.sim.speed_rpm * 2 / 60) < 0.2
+    assert status.dc_bus_voltage == 540.0
+    assert status.output_current > 0.0
+    assert 30.0 < status.temperature < 50.0
+    assert status.status_word_names == ['A00.00', 'P01.01', 'P01.02']
+    assert status.status_words_raw[2] == 1                         # P01.02 run flag
+
+    h.stream(-1.5)                                                 # reverse by setpoint sign
+    status = h.wait_status(lambda s: abs(s.measured_velocity + 1.5) < 0.02, 5.0, 'reverse')
+    assert status.reverse and h.sim.speed_rpm < 0
+    assert write_frame(0xE721, expected_raw(-1.5)) in h.frames_after(since)
+
+
+def test_invert_direction_and_clamp(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True, 'invert_direction': True,
+                                      'max_velocity': 1.0})
+    h.stream(5.0)
+    status = h.wait_status(lambda s: abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'clamped')
+    assert status.commanded_velocity == 1.0
+    assert status.clamped_commands > 0
+    assert h.sim.speed_rpm < 0                                     # inverted on the motor
+
+
+def test_startup_never_moves_and_zeroes_setpoint_first(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    first_run = None
+    frames = [frame for _, frame in h.line.received]
+    for index, frame in enumerate(frames):
+        if frame == write_frame(0xE720, 1):
+            first_run = index
+            break
+    assert first_run is None                                       # no command: no run
+    assert frames.index(write_frame(0xE721, 0)) < frames.index(write_frame(0xE720, 4))
+    h.stream(1.0)
+    wait_for(lambda: write_frame(0xE720, 1) in [f for _, f in h.line.received], 5.0, 'run')
+    frames = [frame for _, frame in h.line.received]
+    run = frames.index(write_frame(0xE720, 1))
+    # Rising edge: the command register is cleared right before the run command.
+    assert frames[run - 1] == write_frame(0xE720, 0)
+    assert h.sim.speed_rpm >= 0
+
+
+def test_watchdog_stops_drive_when_commands_stop(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(2.0)
+    h.wait_status(lambda s: s.running and s.measured_velocity > 1.9, 5.0, 'running')
+    since = time.monotonic()
+    h.stop_stream()
+    status = h.wait_status(lambda s: s.watchdog_tripped, 2.0, 'watchdog trip')
+    tripped_after = time.monotonic() - since
+    assert 'command_timeout' in status.stop_reason
+    assert status.commanded_velocity == 0.0
+    assert tripped_after < 1.0
+    wait_for(lambda: write_frame(0xE720, 4) in h.frames_after(since), 1.0,
+             'decelerate-stop command on the wire')
+    h.wait_status(lambda s: not s.running and abs(s.measured_velocity) < 1e-6, 5.0, 'stopped')
+    assert h.sim.speed_rpm == 0.0
+    # Commands coming back resume motion (the drive is still enabled).
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'resumed')
+
+
+def test_nan_and_inf_commands_are_rejected_and_do_not_feed_watchdog(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running')
+    h.stream(math.nan)
+    status = h.wait_status(lambda s: s.watchdog_tripped, 2.0, 'watchdog despite NaN stream')
+    assert status.rejected_commands > 0
+    h.stream(math.inf)
+    before = h.status.rejected_commands
+    h.wait_status(lambda s: s.rejected_commands > before + 3, 2.0, 'inf rejected')
+    assert h.status.watchdog_tripped
+    assert h.sim.run_requested is False
+
+
+def test_fault_is_published_with_text_and_reset_is_verified(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.sim.inject_fault(7, 1, latched=True)
+    fault = wait_for(lambda: next((f for f in reversed(h.faults) if f.active), None), 3.0,
+                     'fault message')
+    assert (fault.code, fault.subcode, fault.display) == (7, 1, 'E07.01')
+    assert fault.name == 'Input phase loss' and fault.known
+    assert 'input' in fault.remedy.lower()
+    status = h.wait_status(lambda s: s.fault and not s.running, 3.0, 'fault status')
+    assert status.fault_code == 7 and 'reset_fault' in status.stop_reason
+    # The cause is still there: the reset is sent but cannot succeed.
+    response = h.trigger('reset_fault')
+    assert not response.success and 'E07.01' in response.message
+    # Motion is not re-issued while the fault is latched.
+    assert not h.sim.run_requested
+    h.sim.inject_fault(0)                      # cause gone
+    response = h.trigger('reset_fault')
+    assert response.success, response.message
+    wait_for(lambda: h.faults and not h.faults[-1].active and h.faults[-1].code == 7, 3.0,
+             'cleared fault message')
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'motion after reset')
+
+
+def test_unknown_fault_code_is_reported_not_crashing(make_harness):
+    h = make_harness()
+    h.sim.inject_fault(49, 2)
+    fault = wait_for(lambda: next((f for f in reversed(h.faults) if f.active), None), 3.0,
+                     'fault')
+    assert not fault.known and fault.name == 'unknown fault 49'
+    assert h.trigger('reset_fault').success
+
+
+def test_late_subscriber_gets_current_fault(make_harness, ros_context):
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from vfd_ros2.msg import DriveFault
+    h = make_harness()
+    h.sim.inject_fault(9, 1, latched=True)
+    h.wait_status(lambda s: s.fault, 3.0, 'fault')
+    time.sleep(0.1)
+    late = Node('late', namespace=h.namespace, context=ros_context)
+    received: list[DriveFault] = []
+    late.create_subscription(DriveFault, 'drive/fault', received.append,
+                             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    h.executor.add_node(late)
+    try:
+        wait_for(lambda: received, 3.0, 'latched fault')
+        assert received[-1].active and received[-1].code == 9
+    finally:
+        h.executor.remove_node(late)
+        late.destroy_node()
+
+
+def test_parameter_get_and_set(make_harness):
+    h = make_harness()
+    by_name = h.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='acceleration_time'))
+    by_code = h.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='B04.02'))
+    assert by_name.success and by_code.success
+    assert by_name.code == 'B04.02' and by_name.value == 0.5 and by_name.unit == 's'
+    assert by_code.raw_value == 5 and by_code.writable and by_code.maximum == 1000.0
+
+    reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                   SetDriveParameter.Request(name='deceleration_time', value=2.5,
+                                             persistent=False))
+    assert reply.success, reply.message
+    assert reply.value == 2.5 and reply.raw_value == 25
+    assert h.sim.value('B04.03') == 2.5
+    assert h.sim.value('C02.07') == 1          # RAM-only write selected first
+
+    reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                   SetDriveParameter.Request(name='B04.03', value=3.0, persistent=True))
+    assert reply.success and h.sim.value('C02.07') == 0 and h.sim.value('B04.03') == 3.0
+
+    enum = h.call(GetDriveParameter, 'get_drive_parameter',
+                  GetDriveParameter.Request(name='stop_mode'))
+    assert enum.success and enum.value_text == 'decelerate to stop'
+
+
+def test_parameter_bad_inputs_change_nothing(make_harness):
+    h = make_harness()
+    before = dict(h.sim.words)
+    cases = {
+        ('no_such_parameter', 1.0): 'unknown parameter',
+        ('Z99.99', 1.0): 'unknown parameter',
+        ('A00.03', 1.0): 'read-only',
+        ('acceleration_time', 5000.0): 'above the maximum',
+        ('acceleration_time', -1.0): 'below the minimum',
+        ('acceleration_time', math.nan): 'not a finite number',
+        ('acceleration_time', math.inf): 'not a finite number',
+        ('acceleration_time', 1.25): 'resolution',
+        ('stop_mode', 7.0): 'above the maximum',
+    }
+    for (name, value), why in cases.items():
+        reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name=name, value=value, persistent=False))
+        assert not reply.success, (name, value)
+        assert why in reply.message, (name, value, reply.message)
+    unknown = h.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='nope'))
+    assert not unknown.success and 'unknown parameter' in unknown.message
+    changed = {a for a in before if h.sim.words.get(a) != before[a]}
+    writable_changed = {a for a in changed
+                        if (p := h.profile.parameter_at(a)) is not None and p.writable and
+                        p.code not in ('P07.32', 'P07.33')}
+    assert writable_changed == set()
+
+
+def test_enable_disable_stop_are_verified(make_harness):
+    h = make_harness()
+    status = h.wait_status(lambda s: s.state == 'disabled', 3.0, 'disabled at start')
+    assert not status.enabled
+    h.stream(1.0)
+    time.sleep(0.3)
+    assert not h.sim.run_requested             # velocity alone does not enable
+    reply = h.trigger('enable')
+    assert reply.success and 'running' in reply.message, reply.message
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'moving')
+    reply = h.trigger('stop')
+    assert reply.success, reply.message
+    assert not h.status.running and h.sim.speed_rpm == 0.0
+    h.wait_status(lambda s: s.state == 'stopped', 2.0, 'stop latched')
+    assert h.trigger('enable').success
+    h.wait_status(lambda s: s.running, 5.0, 'running again')
+    reply = h.trigger('disable')
+    assert reply.success, reply.message
+    assert h.sim.last_command_value == 0       # the AM's "clear all flags" value
+    h.wait_status(lambda s: s.state == 'disabled' and not s.running, 2.0, 'disabled')
+
+
+def test_comm_loss_is_reported_and_recovered(make_harness, ros_context):
+    h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
+    assert h.sim.value('C02.04') == pytest.approx(0.3)   # the drive's own timeout, at connect
+    diagnostics: list[DiagnosticArray] = []
+    h.tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 10)
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.sim.silent = True                        # cable pulled
+    status = h.wait_status(lambda s: not s.online, 2.0, 'offline')
+    assert status.timeouts > 0 and status.state == 'offline'
+    wait_for(lambda: any(st.level == DiagnosticStatus.ERROR and st.hardware_id ==
+                         status.hardware_id for d in diagnostics for st in d.status),
+             3.0, 'diagnostics ERROR')
+    # The drive stopped by itself: its comm-loss timeout raised fault 35.3.
+    wait_for(lambda: h.sim.fault_code == 35 and h.sim.speed_rpm == 0.0, 3.0, 'drive timeout')
+    h.sim.silent = False                       # cable back
+    status = h.wait_status(lambda s: s.online and s.fault, 5.0, 'back online with fault')
+    assert status.reconnects >= 1 and status.fault_code == 35 and status.fault_subcode == 3
+    assert not h.sim.run_requested             # no motion from a stale command
+    assert h.trigger('reset_fault').success
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'moving again after reset')
+
+
+def test_corrupted_replies_are_counted_and_survived(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.line.corrupt_rate = 1.0
+    status = h.wait_status(lambda s: not s.online, 3.0, 'offline on garbage')
+    assert status.bad_frames > 0
+    h.line.corrupt_rate = 0.0
+    h.wait_status(lambda s: s.online, 5.0, 'resynchronised')

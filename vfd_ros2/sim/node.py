@@ -1,0 +1,125 @@
+"""sim_drive: simulated drives on an emulated line, controllable from ROS.
+
+Parameters:
+  profile            drive profile of the simulated drives
+  transport          modbus_rtu (a pseudo-terminal behind ``port``)
+  port               stable path the driver opens (a symlink to the pty)
+  unit_ids           slave ids served on the line, e.g. [1, 2]
+  baudrate           0 = the profile's factory setting (used for wire time)
+  emulate_wire_time  delay replies by their time on the wire at the baud rate
+  corrupt_rate       fraction of replies corrupted (bad CRC, truncated, wrong id)
+  silent_unit_ids    drives that do not hear or answer (cable unplugged);
+                     can be changed at run time with `ros2 param set`
+  initial_values     ["B04.02=1.0", ...] parameter values at power-up
+Services:
+  ~/inject_fault     vfd_ros2/srv/InjectFault
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from vfd_ros2.srv import InjectFault
+
+from ..errors import VfdError
+from ..profile import load_profile
+from .model import SimulatedDrive
+from .rtu_line import SimulatedRtuLine
+
+
+def parse_initial_values(items: list[str]) -> dict[str, float]:
+    """["B04.02=1.0", ...] -> {"B04.02": 1.0}; ValueError names the bad item."""
+    values: dict[str, float] = {}
+    for item in items:
+        code, sep, value = item.partition('=')
+        if not sep:
+            raise ValueError(f'initial value {item!r} is not CODE=VALUE')
+        values[code.strip()] = float(value)
+    return values
+
+
+class SimDriveNode(Node):
+    def __init__(self, node_name: str = 'sim_drive', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        declare = self._declare
+        profile = load_profile(declare('profile', 'boneng_am', 'profile of the simulated drives'))
+        transport = declare('transport', 'modbus_rtu', 'line type: modbus_rtu')
+        port = declare('port', '/tmp/vfd_ros2/sim/line0', 'stable path of the emulated port')
+        unit_ids = list(declare('unit_ids', [1], 'slave ids served on the line'))
+        baudrate = int(declare('baudrate', 0, 'bit/s; 0 = the profile\'s factory setting'))
+        wire_time = bool(declare('emulate_wire_time', False, 'delay replies by wire time'))
+        corrupt = float(declare('corrupt_rate', 0.0, 'fraction of replies corrupted'))
+        initial = parse_initial_values(declare(
+            'initial_values', Parameter.Type.STRING_ARRAY,
+            'CODE=VALUE parameter values at power-up') or [])
+        declare('silent_unit_ids', Parameter.Type.INTEGER_ARRAY,
+                'drives that do not hear or answer (cable unplugged)')
+        if transport != 'modbus_rtu':
+            raise VfdError(f'sim_drive: transport {transport!r} is not simulated yet')
+        self.drives = [SimulatedDrive(profile, int(unit), initial) for unit in unit_ids]
+        serial = profile.modbus.serial
+        self.line = SimulatedRtuLine(
+            self.drives, port, baudrate=baudrate or serial.baudrate, parity=serial.parity,
+            stopbits=serial.stopbits, emulate_wire_time=wire_time, corrupt_rate=corrupt)
+        self.line.start()
+        self.add_on_set_parameters_callback(self._on_parameters)
+        self.create_service(InjectFault, '~/inject_fault', self._on_inject_fault)
+        self.get_logger().info(
+            f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {port}')
+
+    def _declare(self, name: str, default: Any, description: str) -> Any:
+        return self.declare_parameter(
+            name, default, ParameterDescriptor(description=description)).value
+
+    def _on_parameters(self, parameters: list) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name == 'silent_unit_ids':
+                silent = {int(unit) for unit in parameter.value or []}
+                for drive in self.drives:
+                    drive.silent = drive.unit_id in silent
+            elif parameter.name == 'corrupt_rate':
+                self.line.corrupt_rate = float(parameter.value)
+        return SetParametersResult(successful=True)
+
+    def _on_inject_fault(self, request: InjectFault.Request,
+                         response: InjectFault.Response) -> InjectFault.Response:
+        targets = [d for d in self.drives if request.unit_id in (0, d.unit_id)]
+        if not targets:
+            response.success = False
+            response.message = f'no simulated drive with unit id {request.unit_id}'
+            return response
+        for drive in targets:
+            drive.inject_fault(request.code, request.subcode, request.latched)
+        response.success = True
+        response.message = (f'fault {request.code}.{request.subcode} raised on '
+                             f'{[d.unit_id for d in targets]}' if request.code else
+                             'fault cause cleared: a fault reset will now succeed')
+        return response
+
+    def destroy_node(self) -> None:
+        self.line.stop()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimDriveNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (VfdError, ValueError) as exc:
+        print(f'sim_drive: {exc}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
