@@ -1,0 +1,89 @@
+"""Bringup logic shared by the launch files and the demo (kept here, tested).
+
+A launch file only turns these NodeSpecs into launch_ros ``Node`` actions, so
+everything a launch test would have to check is plain Python.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .config import SETTINGS
+
+DEFAULT_SIM_DIR = '/tmp/vfd_ros2/sim_agv'
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node to start: executable of this package, name, namespace, parameters."""
+
+    executable: str
+    name: str
+    namespace: str
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def fully_qualified_name(self) -> str:
+        return f'{self.namespace.rstrip("/")}/{self.name}'
+
+    def params_document(self) -> dict[str, Any]:
+        """The ``--params-file`` YAML document for this node."""
+        return {self.fully_qualified_name: {'ros__parameters': dict(self.parameters)}}
+
+    def write_params_file(self, directory: Path) -> Path:
+        path = Path(directory) / f'{self.fully_qualified_name.strip("/").replace("/", "__")}.yaml'
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(yaml.safe_dump(self.params_document(), sort_keys=False))
+        return path
+
+    def command(self, params_file: Path) -> list[str]:
+        """argv for running the node as a process (``ros2 run`` equivalent)."""
+        return [self.executable, '--ros-args', '-r', f'__ns:={self.namespace}',
+                '-r', f'__node:={self.name}', '--params-file', str(params_file)]
+
+
+def drive_spec(namespace: str, parameters: dict[str, Any], name: str = 'drive') -> NodeSpec:
+    """A drive_node; unknown parameter names are refused here, not at run time."""
+    known = {s.name for s in SETTINGS}
+    unknown = [key for key in parameters if key not in known and
+               not key.startswith('transport.')]
+    if unknown:
+        raise ValueError(f'unknown drive_node parameters: {unknown}')
+    return NodeSpec('drive_node', name, namespace, dict(parameters))
+
+
+def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
+            wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
+            gear_ratio: float = 10.0, ramp_time: float = 1.0) -> list[NodeSpec]:
+    """A simulated AGV: per wheel, a simulated drive on its own pty line and its driver.
+
+    The right wheel is mounted mirrored, so its driver inverts the direction:
+    both wheels then turn "forward" for a positive command (REP 103).
+    """
+    specs: list[NodeSpec] = []
+    for index, wheel in enumerate(wheels):
+        port = f'{directory}/{wheel}'
+        namespace = f'/agv/{wheel}'
+        specs.append(NodeSpec('sim_drive', 'sim_drive', namespace, {
+            'profile': profile,
+            'port': port,
+            'unit_ids': [1],
+            'initial_values': [f'acceleration_time={ramp_time}',
+                               f'deceleration_time={ramp_time}'],
+        }))
+        specs.append(drive_spec(namespace, {
+            'drive.profile': profile,
+            'transport.type': 'modbus_rtu',
+            'transport.port': port,
+            'transport.unit_id': 1,
+            'gear_ratio': gear_ratio,
+            'invert_direction': index % 2 == 1,
+            'max_velocity': 5.0,
+            'command_timeout': 0.5,
+            'frame_id': f'{wheel}_link',
+        }))
+    return specs

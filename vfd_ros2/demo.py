@@ -1,0 +1,196 @@
+"""demo: a two-wheel AGV on simulated BONENG AM drives, end to end.
+
+Starts (as separate processes) two simulated drives on emulated RS-485 lines
+and two drive nodes, enables the drives through their services, drives a short
+velocity profile, prints a live table of what the drives report, stops them
+and exits (0 if both wheels followed the profile).
+
+  demo              start everything, run the profile, shut everything down
+  demo --attach     only run the profile against already running nodes
+                    (what launch/sim_agv.launch.py does)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import rclpy
+from rclpy.node import Node
+from std_msgs.msg import Float64
+from std_srvs.srv import Trigger
+
+from vfd_ros2.msg import DriveStatus
+
+from .bringup import NodeSpec, sim_agv
+
+#: (duration s, velocity rad/s at the wheel)
+PROFILE: tuple[tuple[float, float], ...] = (
+    (2.0, 1.0), (2.0, 3.0), (2.0, -2.0), (1.5, 0.0))
+TOLERANCE = 0.1   # rad/s between commanded and measured at the end of each step
+
+
+@dataclass
+class Wheel:
+    name: str
+    publisher: object
+    status: DriveStatus | None = None
+
+
+class Commander(Node):
+    """Publishes the velocity profile and watches the drives' status."""
+
+    def __init__(self, wheel_names: list[str]) -> None:
+        super().__init__('demo_commander')
+        self.wheels = [Wheel(name, self.create_publisher(
+            Float64, f'/agv/{name}/drive/velocity_command', 10)) for name in wheel_names]
+        for wheel in self.wheels:
+            self.create_subscription(DriveStatus, f'/agv/{wheel.name}/drive/status',
+                                     lambda msg, w=wheel: setattr(w, 'status', msg), 10)
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            rclpy.spin_once(self, timeout_sec=min(0.05, max(0.0, deadline - time.monotonic())))
+
+    def wait_online(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if all(w.status is not None and w.status.online for w in self.wheels):
+                return True
+            rclpy.spin_once(self, timeout_sec=0.1)
+        return False
+
+    def trigger(self, wheel: Wheel, service: str) -> Trigger.Response | None:
+        client = self.create_client(Trigger, f'/agv/{wheel.name}/drive/{service}')
+        try:
+            if not client.wait_for_service(timeout_sec=5.0):
+                return None
+            future = client.call_async(Trigger.Request())
+            rclpy.spin_until_future_complete(self, future, timeout_sec=15.0)
+            return future.result()
+        finally:
+            self.destroy_client(client)
+
+    def publish(self, velocity: float) -> None:
+        for wheel in self.wheels:
+            wheel.publisher.publish(Float64(data=velocity))
+
+
+def _cell(value: float, width: int = 7, digits: int = 2) -> str:
+    return f'{value:{width}.{digits}f}' if math.isfinite(value) else ' ' * (width - 3) + 'n/a'
+
+
+def format_row(elapsed: float, command: float, wheels: list[Wheel]) -> str:
+    cells = [f'{elapsed:5.1f}s', _cell(command)]
+    for wheel in wheels:
+        s = wheel.status
+        if s is None:
+            cells.append('  (no status yet)              ')
+            continue
+        cells.append(f'{_cell(s.measured_velocity)} {_cell(s.output_frequency, 6, 1)}Hz '
+                     f'{_cell(s.output_current, 5, 2)}A {s.state:<8}')
+    return ' | '.join(cells)
+
+
+def run_profile(commander: Commander, out=sys.stdout) -> bool:
+    """Drive PROFILE, print the table, return True if the wheels followed it."""
+    header = ['  time', ' cmd rad/s'] + [
+        f'{w.name:>7}: rad/s   freq   current state   ' for w in commander.wheels]
+    print(' | '.join(header), file=out)
+    followed = True
+    start = time.monotonic()
+    for duration, velocity in PROFILE:
+        step_end = time.monotonic() + duration
+        next_print = 0.0
+        while time.monotonic() < step_end:
+            commander.publish(velocity)
+            commander.spin_for(0.05)
+            now = time.monotonic()
+            if now >= next_print:
+                print(format_row(now - start, velocity, commander.wheels), file=out, flush=True)
+                next_print = now + 0.25
+        for wheel in commander.wheels:
+            status = wheel.status
+            if status is None or abs(status.measured_velocity - velocity) > TOLERANCE:
+                measured = status.measured_velocity if status else math.nan
+                print(f'!! {wheel.name} did not reach {velocity} rad/s (measured {measured})',
+                      file=out)
+                followed = False
+    return followed
+
+
+def _start_processes(specs: list[NodeSpec], workdir: Path) -> list[subprocess.Popen]:
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    processes = []
+    for spec in specs:
+        params = spec.write_params_file(workdir)
+        log = open(workdir / f'{spec.namespace.strip("/").replace("/", "_")}_{spec.name}.log',
+                   'w')
+        processes.append(subprocess.Popen(spec.command(params), env=env, stdout=log,
+                                          stderr=subprocess.STDOUT))
+        if spec.executable == 'sim_drive':
+            time.sleep(0.3)   # the line's pty must exist before its driver opens it
+    return processes
+
+
+def _stop_processes(processes: list[subprocess.Popen]) -> None:
+    for process in reversed(processes):
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    for process in reversed(processes):
+        try:
+            process.wait(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--attach', action='store_true',
+                        help='run the profile against already running nodes')
+    args, ros_args = parser.parse_known_args(argv)
+    if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
+        print('demo: set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (scripts/demo does)')
+        return 2
+    wheels = ['left_wheel', 'right_wheel']
+    processes: list[subprocess.Popen] = []
+    workdir = Path(tempfile.mkdtemp(prefix='vfd_demo_'))
+    if not args.attach:
+        specs = sim_agv(directory=str(workdir / 'lines'))
+        processes = _start_processes(specs, workdir)
+        print(f'started {len(processes)} processes (logs in {workdir})')
+    rclpy.init(args=ros_args)
+    commander = Commander(wheels)
+    ok = False
+    try:
+        if not commander.wait_online(20.0):
+            print('demo: the drives did not come online; see the logs in', workdir)
+            return 1
+        for wheel in commander.wheels:
+            reply = commander.trigger(wheel, 'enable')
+            print(f'enable {wheel.name}: {reply.message if reply else "no reply"}')
+        ok = run_profile(commander)
+        for wheel in commander.wheels:
+            reply = commander.trigger(wheel, 'stop')
+            print(f'stop {wheel.name}: {reply.message if reply else "no reply"}')
+        print('demo finished:', 'both wheels followed the profile' if ok else 'FAILED')
+    except KeyboardInterrupt:
+        pass
+    finally:
+        commander.destroy_node()
+        rclpy.try_shutdown()
+        _stop_processes(processes)
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
