@@ -27,6 +27,7 @@ from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+from vfd_ros2.sim.tcp_server import SimulatedTcpServer
 
 
 def wait_for(condition: Callable[[], Any], timeout: float = 5.0, what: str = 'condition',
@@ -50,13 +51,21 @@ class DriveHarness:
                  node_parameters: dict[str, Any] | None = None) -> None:
         self.context = context
         self.profile = load_profile(profile)
-        initial = {'B04.02': 0.5, 'B04.03': 0.5}
+        velocity = self.profile.velocity
+        initial = {code: 0.5 for code in (velocity.acceleration_time, velocity.deceleration_time)
+                   if code}
         initial.update(sim_initial or {})
         self.sim = SimulatedDrive(self.profile, 1, initial)
-        self.line = SimulatedRtuLine([self.sim], port).start()
+        self.transport = self.profile.transports[0]
+        if self.transport == 'modbus_tcp':
+            self.line = SimulatedTcpServer([self.sim]).start()
+            link = {'transport.host': '127.0.0.1', 'transport.port': self.line.port}
+        else:
+            self.line = SimulatedRtuLine([self.sim], port).start()
+            link = {'transport.port': port}
         self.namespace = f'/t{uuid.uuid4().hex[:8]}/wheel'
         parameters = {
-            'drive.profile': profile, 'transport.type': 'modbus_rtu', 'transport.port': port,
+            'drive.profile': profile, 'transport.type': self.transport, **link,
             'transport.unit_id': 1, 'gear_ratio': 10.0, 'status_rate': 50.0,
             'diagnostics_rate': 5.0, 'stop_timeout': 3.0, 'command_timeout': 0.5,
         }

@@ -252,7 +252,13 @@ class DriveController:
         if self.config.apply_commissioning:
             wanted += [(item.code, item.value) for item in profile.commissioning]
         for code, value in wanted:
-            parameter, raw = self.drive.check_write(code, value, running=False)
+            try:
+                parameter, raw = self.drive.check_write(code, value, running=False)
+            except ParameterError as exc:
+                # A setting the drive cannot take (e.g. 0 = "off" where the manual has
+                # no off value) must not keep the drive offline: report and go on.
+                log.error('%s: not written at connect: %s', self.drive.hardware_id, exc)
+                continue
             if self.drive.read_value(parameter).raw != raw:
                 self.drive.write_raw(parameter, raw)
 

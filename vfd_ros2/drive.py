@@ -72,6 +72,8 @@ class ModbusDrive:
             block: min(s.every for s, p in self._signals if block.covers(p.address))
             if any(block.covers(p.address) for _, p in self._signals) else 1
             for block in self.blocks}
+        self._unsigned_roles = {signal.role: parameter.type.bounds[0] == 0 and not signal.bits
+                                for signal, parameter in self._signals}
         self._words: dict[int, int] = {}
         self.asserted_command: str | None = None
         self.last_setpoint_raw = 0
@@ -201,15 +203,19 @@ class ModbusDrive:
                                        int(values.get('fault_subcode', 0)))
         reading.warning_code = int(values.get('warning_code', 0))
         reading.warning_subcode = int(values.get('warning_subcode', 0))
-        reading.measured_velocity = self._measured_velocity(values)
+        reading.measured_velocity = self._measured_velocity(
+            values, reading.flags.get('reverse', False))
         return reading
 
-    def _measured_velocity(self, values: Mapping[str, float]) -> float:
-        if 'motor_speed' in values:
-            return self.scaling.from_native(values['motor_speed'],
-                                            self.profile.velocity.feedback_unit)
-        if 'output_frequency' in values:
-            return self.scaling.from_native(values['output_frequency'], SpeedUnit.HZ)
+    def _measured_velocity(self, values: Mapping[str, float], reverse: bool) -> float:
+        for role, unit in (('motor_speed', self.profile.velocity.feedback_unit),
+                           ('output_frequency', SpeedUnit.HZ)):
+            if role not in values:
+                continue
+            native = values[role]
+            if self._unsigned_roles.get(role) and reverse:
+                native = -abs(native)   # unsigned register: direction from the status flags
+            return self.scaling.from_native(native, unit)
         return math.nan
 
     # --- parameters -------------------------------------------------------------
@@ -236,6 +242,8 @@ class ModbusDrive:
         note = ''
         if persistence.kind is PersistenceKind.NONE:
             note = 'this drive does not distinguish RAM and EEPROM writes'
+        elif not persistence.covers(parameter.address):
+            note = f'{parameter.code} is a process register: written without a RAM/EEPROM choice'
         elif persistence.kind is PersistenceKind.ADDRESS_OFFSET and persistent:
             address = parameter.address + persistence.offset
         elif persistence.kind is PersistenceKind.ADDRESS_FLAG and not persistent:
@@ -253,6 +261,6 @@ class ModbusDrive:
             raise ParameterError(
                 f'{parameter.code}: wrote {raw} but the drive holds {readback.raw}')
         where = 'EEPROM' if persistent else 'RAM'
-        if persistence.kind is not PersistenceKind.NONE:
+        if persistence.kind is not PersistenceKind.NONE and persistence.covers(parameter.address):
             note = f'{where} write' + (f'; {note}' if note else '')
         return readback, note

@@ -155,7 +155,14 @@ class Persistence:
     persistent_value: int = 0
     offset: int = 0
     flag: int = 0
+    # Address ranges [low, high] the RAM/EEPROM choice applies to (empty = all);
+    # other registers (process values) take plain writes only.
+    applies_to: tuple[tuple[int, int], ...] = ()
     note: str = ''
+
+    def covers(self, address: int) -> bool:
+        return not self.applies_to or any(low <= address <= high
+                                          for low, high in self.applies_to)
 
 
 @dataclass(frozen=True)
@@ -533,6 +540,7 @@ def load_profile_file(path: Path | str) -> Profile:
         persistent_value=int(pers.get('persistent_value', 0)),
         offset=int(pers.get('offset', 0)),
         flag=int(pers.get('flag', 0)),
+        applies_to=tuple((int(low), int(high)) for low, high in pers.get('applies_to', []) or []),
         note=str(pers.get('note', '')),
     )
     pers.done()

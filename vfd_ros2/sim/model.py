@@ -22,8 +22,8 @@ import time
 from typing import Callable
 
 from ..errors import ParameterError
-from ..profile import (DirectionMode, FlagRuleKind, Parameter, PersistenceKind, Profile,
-                       SpeedUnit)
+from ..profile import (DirectionMode, FlagRule, FlagRuleKind, Parameter, PersistenceKind,
+                       Profile, SpeedUnit)
 from ..registers import decode_words, encode_words
 
 #: roles whose values come from the physics, not from inverting a flag rule
@@ -105,7 +105,8 @@ class SimulatedDrive:
         except ParameterError:
             return fallback
 
-    def _exception(self, situation: str) -> SimException:
+    def exception(self, situation: str) -> SimException:
+        """The exception this drive answers in ``situation`` (see modbus.exception_for)."""
         codes = self.profile.modbus.exception_for
         code = codes.get(situation)
         if code is None and situation == 'too_many_registers':
@@ -125,16 +126,16 @@ class SimulatedDrive:
 
     def check_function(self, function_code: int) -> None:
         if function_code not in self.profile.modbus.function_codes:
-            raise self._exception('illegal_function')
+            raise self.exception('illegal_function')
 
     def read(self, address: int, count: int) -> list[int]:
         with self.lock:
             if count < 1 or count > self.profile.modbus.max_read_registers:
-                raise self._exception('too_many_registers')
+                raise self.exception('too_many_registers')
             if not self.profile.modbus.gaps_readable:
                 for offset in range(count):
                     if not self._documented(address + offset):
-                        raise self._exception('illegal_address')
+                        raise self.exception('illegal_address')
             return [self.words.get(address + i, 0) for i in range(count)]
 
     def _documented(self, address: int) -> bool:
@@ -156,17 +157,17 @@ class SimulatedDrive:
     def write(self, address: int, values: list[int]) -> None:
         with self.lock:
             if len(values) > max(1, self.profile.modbus.max_write_registers):
-                raise self._exception('too_many_registers')
+                raise self.exception('too_many_registers')
             address = self._resolve_write_address(address)
             offset = 0
             pending: list[tuple[Parameter, int]] = []
             while offset < len(values):
                 parameter = self.profile.parameter_at(address + offset)
                 if parameter is None:
-                    raise self._exception('illegal_address')
+                    raise self.exception('illegal_address')
                 count = parameter.register_count
                 if offset + count > len(values):
-                    raise self._exception('illegal_address')
+                    raise self.exception('illegal_address')
                 raw = decode_words(parameter, values[offset:offset + count])
                 self._check_write(parameter, raw)
                 pending.append((parameter, raw))
@@ -177,15 +178,15 @@ class SimulatedDrive:
 
     def _check_write(self, parameter: Parameter, raw: int) -> None:
         if not parameter.writable:
-            raise self._exception('read_only')
+            raise self.exception('read_only')
         if parameter.access.value == 'rw_stopped' and self.output_active:
-            raise self._exception('stopped_only')
+            raise self.exception('stopped_only')
         if parameter.code in (self.profile.control.command,):
             return
         try:
             parameter.to_raw(parameter.from_raw(raw))
         except ParameterError:
-            raise self._exception('illegal_value') from None
+            raise self.exception('illegal_value') from None
 
     # --- behaviour ------------------------------------------------------------------
 
@@ -300,6 +301,10 @@ class SimulatedDrive:
             raw = (self._raw(parameter) & ~mask) | ((int(value) << low) & mask)
         else:
             raw = round(value / parameter.scale)
+            if parameter.type.bounds[0] == 0:
+                # Unsigned register: the drive reports the magnitude and gives the
+                # direction in its status flags.
+                raw = abs(raw)
         type_low, type_high = parameter.type.bounds
         self._store(parameter, min(max(raw, type_low), type_high))
 
@@ -331,12 +336,32 @@ class SimulatedDrive:
             'reverse': self.speed_rpm < 0,
             'at_speed': self.output_active and abs(self.speed_rpm - target) < 1.0,
         }
+        enumerated: dict[str, list[tuple[FlagRule, bool]]] = {}
         for name, rule in self.profile.flags.items():
             if rule.signal in PHYSICAL_ROLES or name not in wanted:
                 continue
-            self._set_flag(rule, wanted[name])
+            if rule.rule is FlagRuleKind.EQUALS:
+                enumerated.setdefault(rule.signal, []).append((rule, wanted[name]))
+            else:
+                self._set_flag(rule, wanted[name])
+        for signal, rules in enumerated.items():
+            self._set_state_value(signal, rules)
 
-    def _set_flag(self, rule, state: bool) -> None:
+    def _set_state_value(self, signal: str, rules: list[tuple[FlagRule, bool]]) -> None:
+        """Pick the state value that makes every `equals` flag on ``signal`` come out right.
+
+        Candidates are the values the rules name and the register's documented
+        options (e.g. IMO 2100H: 1 forward, 2 reverse, 3 stopped, 4 fault).
+        """
+        parameter = self.profile.parameter(self.profile.signal(signal).code)
+        candidates = sorted({v for rule, _ in rules for v in rule.values} |
+                            set(parameter.options) | {0})
+        for value in candidates:
+            if all(rule.evaluate(value) == state for rule, state in rules):
+                self._set_role(signal, value)
+                return
+
+    def _set_flag(self, rule: FlagRule, state: bool) -> None:
         signal = self.profile.signal(rule.signal)
         parameter = self.profile.parameter(signal.code)
         raw = self._raw(parameter)
@@ -347,5 +372,3 @@ class SimulatedDrive:
             self._set_role(rule.signal, 1 if state else 0)
         elif rule.rule is FlagRuleKind.ZERO:
             self._set_role(rule.signal, 0 if state else 1)
-        elif rule.rule is FlagRuleKind.EQUALS and rule.values and state:
-            self._set_role(rule.signal, rule.values[0])

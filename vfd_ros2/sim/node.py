@@ -2,7 +2,8 @@
 
 Parameters:
   profile            drive profile of the simulated drives
-  transport          modbus_rtu (a pseudo-terminal behind ``port``)
+  transport          modbus_rtu (a pseudo-terminal behind ``port``) or modbus_tcp
+                     (a server on 127.0.0.1:``tcp_port``)
   port               stable path the driver opens (a symlink to the pty)
   unit_ids           slave ids served on the line, e.g. [1, 2]
   baudrate           0 = the profile's factory setting (used for wire time)
@@ -31,6 +32,7 @@ from ..errors import VfdError
 from ..profile import load_profile
 from .model import SimulatedDrive
 from .rtu_line import SimulatedRtuLine
+from .tcp_server import SimulatedTcpServer
 
 
 def parse_initial_values(items: list[str]) -> dict[str, float]:
@@ -60,18 +62,23 @@ class SimDriveNode(Node):
             'CODE=VALUE parameter values at power-up') or [])
         declare('silent_unit_ids', Parameter.Type.INTEGER_ARRAY,
                 'drives that do not hear or answer (cable unplugged)')
-        if transport != 'modbus_rtu':
-            raise VfdError(f'sim_drive: transport {transport!r} is not simulated yet')
+        tcp_port = int(declare('tcp_port', 1502, 'modbus_tcp: port on 127.0.0.1 (0 = any)'))
         self.drives = [SimulatedDrive(profile, int(unit), initial) for unit in unit_ids]
         serial = profile.modbus.serial
-        self.line = SimulatedRtuLine(
-            self.drives, port, baudrate=baudrate or serial.baudrate, parity=serial.parity,
-            stopbits=serial.stopbits, emulate_wire_time=wire_time, corrupt_rate=corrupt)
+        if transport == 'modbus_rtu':
+            self.line = SimulatedRtuLine(
+                self.drives, port, baudrate=baudrate or serial.baudrate, parity=serial.parity,
+                stopbits=serial.stopbits, emulate_wire_time=wire_time, corrupt_rate=corrupt)
+        elif transport == 'modbus_tcp':
+            self.line = SimulatedTcpServer(self.drives, tcp_port)
+        else:
+            raise VfdError(f'sim_drive: transport {transport!r} is not simulated')
         self.line.start()
+        where = port if transport == 'modbus_rtu' else f'tcp://127.0.0.1:{self.line.port}'
         self.add_on_set_parameters_callback(self._on_parameters)
         self.create_service(InjectFault, '~/inject_fault', self._on_inject_fault)
         self.get_logger().info(
-            f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {port}')
+            f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {where}')
 
     def _declare(self, name: str, default: Any, description: str) -> Any:
         return self.declare_parameter(
@@ -83,7 +90,7 @@ class SimDriveNode(Node):
                 silent = {int(unit) for unit in parameter.value or []}
                 for drive in self.drives:
                     drive.silent = drive.unit_id in silent
-            elif parameter.name == 'corrupt_rate':
+            elif parameter.name == 'corrupt_rate' and hasattr(self.line, 'corrupt_rate'):
                 self.line.corrupt_rate = float(parameter.value)
         return SetParametersResult(successful=True)
 

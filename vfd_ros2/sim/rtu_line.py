@@ -22,12 +22,10 @@ from pathlib import Path
 
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
-from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
-from pymodbus.pdu.register_message import (ReadHoldingRegistersResponse,
-                                           WriteMultipleRegistersResponse,
-                                           WriteSingleRegisterResponse)
+from pymodbus.pdu import DecodePDU, ModbusPDU
 
-from .model import SimException, SimulatedDrive
+from .dispatch import answer
+from .model import SimulatedDrive
 
 
 @dataclass
@@ -152,48 +150,11 @@ class SimulatedRtuLine:
         return buffer
 
     def _answer(self, request: ModbusPDU) -> bytes | None:
-        unit = request.dev_id
-        targets = list(self.drives.values()) if unit == 0 else \
-            [self.drives[unit]] if unit in self.drives else []
-        answer = None
-        for drive in targets:
-            if drive.silent:
-                self.stats.ignored += 1
-                continue
-            drive.note_request()
-            answer = self._execute(drive, request)
-        if unit == 0 or answer is None:   # broadcasts are never answered
-            if not targets:
-                self.stats.ignored += 1
+        reply = answer(self.drives, request)
+        if reply is None:
+            self.stats.ignored += 1
             return None
-        answer.dev_id = unit
-        answer.transaction_id = request.transaction_id
-        return self._framer.buildFrame(answer)
-
-    @staticmethod
-    def _execute(drive: SimulatedDrive, request: ModbusPDU) -> ModbusPDU:
-        function = request.function_code
-        try:
-            drive.check_function(function)
-            if function == 3:
-                values = drive.read(request.address, request.count)
-                return ReadHoldingRegistersResponse(registers=values)
-            if function == 6:
-                drive.write(request.address, [request.registers[0]])
-                return WriteSingleRegisterResponse(address=request.address,
-                                                   registers=[request.registers[0]])
-            if function == 16:
-                drive.write(request.address, list(request.registers))
-                return WriteMultipleRegistersResponse(address=request.address,
-                                                      count=len(request.registers))
-            if function == 8 and request.sub_function_code == 0:
-                # Diagnostics, return query data: the echo the Modbus spec defines.
-                response_class = DecodePDU.pdu_sub_table[8][0][1]
-                return response_class(message=request.message)
-            raise SimException('illegal_function', drive.profile.modbus.exception_for.get(
-                'illegal_function', 1))
-        except SimException as exc:
-            return ExceptionResponse(function, exc.code)
+        return self._framer.buildFrame(reply)
 
     def _send(self, request: bytes, reply: bytes) -> None:
         if self.corrupt_rate and self._random.random() < self.corrupt_rate:
