@@ -1,0 +1,121 @@
+"""Bringup logic used by the launch files and the demo (no processes started here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import yaml
+
+from vfd_ros2.bringup import DEFAULT_SIM_DIR, NodeSpec, drive_spec, sim_agv
+from vfd_ros2.config import SETTINGS
+from vfd_ros2.sim.node import parse_initial_values
+
+LAUNCH_DIR = Path(__file__).resolve().parents[1] / 'launch'
+
+
+def test_sim_agv_pairs_a_simulator_with_a_driver_per_wheel(tmp_path):
+    specs = sim_agv(directory=str(tmp_path))
+    assert [s.executable for s in specs] == ['sim_drive', 'drive_node'] * 2
+    sims, drivers = specs[0::2], specs[1::2]
+    for sim, driver in zip(sims, drivers):
+        assert sim.namespace == driver.namespace
+        assert sim.parameters['port'] == driver.parameters['transport.port']
+        assert driver.parameters['transport.port'].startswith(str(tmp_path))
+    assert [d.parameters['invert_direction'] for d in drivers] == [False, True]
+    assert {d.fully_qualified_name for d in drivers} == {'/agv/left_wheel/drive',
+                                                         '/agv/right_wheel/drive'}
+    settings = {s.name for s in SETTINGS}
+    for driver in drivers:
+        assert set(driver.parameters) - settings <= {'transport.port'}
+
+
+def test_sim_initial_values_are_valid_for_the_profile():
+    from vfd_ros2.profile import load_profile
+    profile = load_profile('boneng_am')
+    for spec in sim_agv()[0::2]:
+        for code, value in parse_initial_values(spec.parameters['initial_values']).items():
+            assert profile.parameter(code).to_raw(value) >= 0
+
+
+def test_params_file_and_command_line(tmp_path):
+    spec = NodeSpec('drive_node', 'drive', '/agv/left_wheel', {'gear_ratio': 12.5})
+    path = spec.write_params_file(tmp_path)
+    assert yaml.safe_load(path.read_text()) == {
+        '/agv/left_wheel/drive': {'ros__parameters': {'gear_ratio': 12.5}}}
+    assert spec.command(path) == ['drive_node', '--ros-args', '-r', '__ns:=/agv/left_wheel',
+                                  '-r', '__node:=drive', '--params-file', str(path)]
+
+
+def test_drive_spec_refuses_unknown_parameters():
+    with pytest.raises(ValueError, match='gear_ration'):
+        drive_spec('/x', {'gear_ration': 10.0})
+    assert drive_spec('/x', {'transport.anything': 1}).parameters == {'transport.anything': 1}
+
+
+def test_parse_initial_values_rejects_garbage():
+    assert parse_initial_values(['B04.02=1.5', ' acceleration_time = 2 ']) == {
+        'B04.02': 1.5, 'acceleration_time': 2.0}
+    with pytest.raises(ValueError, match='CODE=VALUE'):
+        parse_initial_values(['B04.02'])
+    with pytest.raises(ValueError):
+        parse_initial_values(['B04.02=fast'])
+
+
+def _fake_launch_modules(monkeypatch):
+    """Minimal stand-ins for launch / launch_ros (not installable from PyPI here)."""
+    class Action:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    class LaunchConfiguration(Action):
+        def perform(self, context):
+            return context[self.args[0]]
+
+    modules = {
+        'launch': {'LaunchDescription': lambda actions: list(actions)},
+        'launch.actions': {'DeclareLaunchArgument': Action, 'OpaqueFunction': Action},
+        'launch.conditions': {'IfCondition': Action},
+        'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
+        'launch_ros': {},
+        'launch_ros.actions': {'Node': Action},
+    }
+    for name, attributes in modules.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(attributes)
+        monkeypatch.setitem(sys.modules, name, module)
+    return Action
+
+
+def _load_launch_file(name):
+    spec = importlib.util.spec_from_file_location(name.replace('.', '_'), LAUNCH_DIR / name)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_sim_agv_launch_file_builds_the_bringup_nodes(monkeypatch):
+    Action = _fake_launch_modules(monkeypatch)
+    module = _load_launch_file('sim_agv.launch.py')
+    actions = module.generate_launch_description()
+    opaque = next(a for a in actions if a.kwargs.get('function'))
+    nodes = opaque.kwargs['function']({'directory': '/tmp/x'})
+    expected = sim_agv(directory='/tmp/x')
+    assert [(n.kwargs['executable'], n.kwargs['namespace'], n.kwargs['parameters'])
+            for n in nodes] == [(s.executable, s.namespace, [s.parameters]) for s in expected]
+    demo = [a for a in actions if isinstance(a, Action) and a.kwargs.get('executable') == 'demo']
+    assert demo and demo[0].kwargs['arguments'] == ['--attach']
+    defaults = {a.args[0]: a.kwargs.get('default_value') for a in actions
+                if a.args and isinstance(a.args[0], str)}
+    assert defaults['directory'] == DEFAULT_SIM_DIR
+
+
+def test_drive_launch_file_passes_the_params_file(monkeypatch):
+    _fake_launch_modules(monkeypatch)
+    actions = _load_launch_file('drive.launch.py').generate_launch_description()
+    node = next(a for a in actions if a.kwargs.get('executable') == 'drive_node')
+    assert node.kwargs['package'] == 'vfd_ros2'
+    assert node.kwargs['parameters'][0].args == ('params_file',)
