@@ -335,16 +335,18 @@ class Profile:
     source_file: str = ''
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
     _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
+    _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)
 
     def parameter(self, key: str) -> Parameter:
         """Look a parameter up by function code (any case) or readable name."""
         if key in self.parameters:
             return self.parameters[key]
-        upper = key.strip().upper()
-        if upper in self.parameters:
-            return self.parameters[upper]
-        if key.strip() in self._by_name:
-            return self.parameters[self._by_name[key.strip()]]
+        stripped = key.strip()
+        code = self._by_folded_code.get(stripped.casefold())
+        if code is not None:
+            return self.parameters[code]
+        if stripped in self._by_name:
+            return self.parameters[self._by_name[stripped]]
         raise ParameterError(
             f'unknown parameter {key!r} for profile {self.name} '
             '(use a function code such as those in the manual, or a readable name)')
@@ -489,7 +491,8 @@ def _flag(data: Any, where: str) -> FlagRule:
 def _read_yaml(path: Path) -> Any:
     try:
         with path.open(encoding='utf-8') as stream:
-            return yaml.safe_load(stream)
+            # libyaml's loader when available: the parameter tables run to ~750 rows.
+            return yaml.load(stream, Loader=getattr(yaml, 'CSafeLoader', yaml.SafeLoader))
     except OSError as exc:
         raise ProfileError(f'cannot read profile file {path}: {exc}') from exc
     except yaml.YAMLError as exc:
@@ -497,8 +500,20 @@ def _read_yaml(path: Path) -> Any:
 
 
 def load_profile_file(path: Path | str) -> Profile:
-    """Load and validate one profile file (and the files it includes)."""
+    """Load and validate one profile file (and the files it includes).
+
+    Every defect of the data is reported as a ProfileError naming the file.
+    """
     path = Path(path)
+    try:
+        return _load_profile_file(path)
+    except ProfileError:
+        raise
+    except (ValueError, TypeError, AttributeError, KeyError, IndexError) as exc:
+        raise ProfileError(f'{path.name}: malformed value: {exc!r}') from exc
+
+
+def _load_profile_file(path: Path) -> Profile:
     r = _Reader(_read_yaml(path), path.name)
     if r.get('schema') != 1:
         raise ProfileError(f'{path.name}: unsupported schema (expected schema: 1)')
@@ -640,6 +655,7 @@ def load_profile_file(path: Path | str) -> Profile:
         source_file=str(path),
         _by_name=by_name,
         _by_address=by_address,
+        _by_folded_code={code.casefold(): code for code in parameters},
     )
     r.done()
     _check_references(profile)

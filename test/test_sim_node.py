@@ -1,0 +1,96 @@
+"""sim_drive as a ROS node: fault injection by service, silence and corruption by parameter."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from harness import wait_for
+from vfd_ros2.sim.node import SimDriveNode
+from vfd_ros2.srv import InjectFault
+from vfd_ros2.transports.modbus import ModbusRtuTransport, ModbusTcpTransport
+
+
+@pytest.fixture
+def sim_node(ros_context, tmp_path):
+    created = []
+
+    def make(**parameters):
+        node = SimDriveNode(namespace='/simtest', context=ros_context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in parameters.items()])
+        client = Node('client', namespace='/simtest', context=ros_context)
+        executor = SingleThreadedExecutor(context=ros_context)
+        executor.add_node(node)
+        executor.add_node(client)
+        def spin():
+            while ros_context.ok():
+                try:
+                    executor.spin_once(timeout_sec=0.05)
+                except Exception:  # noqa: BLE001 - the context shut down under us
+                    return
+        thread = threading.Thread(target=spin, daemon=True)
+        thread.start()
+        created.append((node, client, executor))
+        return node, client
+    yield make
+    for node, client, executor in created:
+        executor.remove_node(node)
+        node.destroy_node()
+        client.destroy_node()
+
+
+def call(client, srv_type, name, request):
+    proxy = client.create_client(srv_type, name)
+    assert proxy.wait_for_service(timeout_sec=5.0)
+    future = proxy.call_async(request)
+    wait_for(future.done, 5.0, name)
+    return future.result()
+
+
+def test_inject_fault_service_and_silence_parameter(sim_node, tmp_path):
+    port = str(tmp_path / 'line')
+    node, client = sim_node(port=port, unit_ids=[1, 2],
+                            initial_values=['acceleration_time=2.0'])
+    assert [d.unit_id for d in node.drives] == [1, 2]
+    assert node.drives[0].value('B04.02') == 2.0
+    reply = call(client, InjectFault, 'sim_drive/inject_fault',
+                 InjectFault.Request(unit_id=2, code=9, subcode=1, latched=True))
+    assert reply.success
+    assert (node.drives[1].fault_code, node.drives[0].fault_code) == (9, 0)
+    reply = call(client, InjectFault, 'sim_drive/inject_fault',
+                 InjectFault.Request(unit_id=7, code=9))
+    assert not reply.success and 'no simulated drive' in reply.message
+
+    transport = ModbusRtuTransport(port, 115200, timeout=0.2)
+    try:
+        assert transport.read_registers(2, 0x2100, 2) == [9, 1]       # A01.00/A01.01 on the line
+        value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=[1])
+        result = call(client, SetParameters, 'sim_drive/set_parameters', SetParameters.Request(
+            parameters=[ParameterMsg(name='silent_unit_ids', value=value)]))
+        assert result.results[0].successful
+        assert node.drives[0].silent and not node.drives[1].silent
+        with pytest.raises(Exception, match='no reply'):
+            transport.read_registers(1, 0x2100, 1)
+        assert transport.read_registers(2, 0x2100, 1) == [9]
+    finally:
+        transport.close()
+
+
+def test_modbus_tcp_twin(sim_node):
+    node, _ = sim_node(profile='imo_hd2', transport='modbus_tcp', tcp_port=0)
+    port = node.line.port
+    assert port > 0
+    transport = ModbusTcpTransport('127.0.0.1', port, timeout=0.5)
+    try:
+        transport.write_register(1, 0x2001, 2500)                    # 25.00 Hz setpoint
+        assert transport.read_registers(1, 0x2001, 1) == [2500]
+        assert node.drives[0].value('0x2001') == 25.0
+    finally:
+        transport.close()
