@@ -7,11 +7,11 @@ transport's own ``transport.*`` settings) and hands the values to
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from .controller import ControllerConfig, DriveController
-from .drive import ModbusDrive
 from .errors import ParameterError
 from .profile import Profile, load_profile
 from .scaling import VelocityScaling
@@ -28,11 +28,11 @@ class Setting:
 SETTINGS: tuple[Setting, ...] = (
     Setting('drive.profile', 'boneng_am', 'drive family: a shipped profile name or a YAML path'),
     Setting('transport.type', 'modbus_rtu', 'transport plugin: modbus_rtu, modbus_tcp, ...'),
-    Setting('transport.unit_id', 1, 'the drive\'s address on the link (Modbus slave id)'),
+    Setting('transport.unit_id', 1, "the drive's address on the link (Modbus slave id)"),
     Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn (> 0)'),
     Setting('invert_direction', False, 'reverse the sign between ROS and the drive'),
     Setting('motor.rated_speed_rpm', 0.0,
-            'motor rated speed = 100 % setpoint; 0 = the profile\'s nameplate default'),
+            "motor rated speed = 100 % setpoint; 0 = the profile's nameplate default"),
     Setting('motor.pole_pairs', 0, 'motor pole pairs (Hz <-> rpm); 0 = profile default'),
     Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped'),
     Setting('command_timeout', 0.5, 's without a valid velocity command before the drive stops'),
@@ -42,9 +42,9 @@ SETTINGS: tuple[Setting, ...] = (
     Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline'),
     Setting('reconnect_period', 0.5, 's between reconnect attempts'),
     Setting('drive_comm_timeout', 0.3,
-            's written to the drive\'s own comm-loss timeout at connect; 0 = disable it'),
+            "s written to the drive's own comm-loss timeout at connect; 0 = disable it"),
     Setting('apply_commissioning', True,
-            'write the profile\'s bus-control settings at connect when they differ'),
+            "write the profile's bus-control settings at connect when they differ"),
     Setting('auto_enable', False, 'enable at start-up (motion still needs fresh commands)'),
     Setting('action_timeout', 2.0, 's to verify enable and reset_fault'),
     Setting('stop_timeout', 10.0, 's to verify stop and disable (covers the deceleration)'),
@@ -53,7 +53,7 @@ SETTINGS: tuple[Setting, ...] = (
 
 
 def transport_settings(values: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``transport.*`` values with the prefix removed."""
+    """Return the ``transport.*`` values with the prefix removed."""
     return {key.split('.', 1)[1]: value for key, value in values.items()
             if key.startswith('transport.')}
 
@@ -102,6 +102,8 @@ def build_controller(values: Mapping[str, Any]) -> DriveController:
     settings = {p.name: p.default for p in transport_class.parameters}
     settings.update(transport_settings(merged))
     transport = transport_class.from_settings(settings, profile)
-    drive = ModbusDrive(profile, transport, int(merged['transport.unit_id']),
+    module_name, _, class_name = transport_class.drive_class.partition(':')
+    drive_class = getattr(importlib.import_module(module_name), class_name)
+    drive = drive_class(profile, transport, int(merged['transport.unit_id']),
                         velocity_scaling(profile, merged))
     return DriveController(drive, controller_config(merged))

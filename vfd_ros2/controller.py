@@ -25,7 +25,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Callable, Generator, Iterator
 
-from .drive import ModbusDrive, ParameterValue, Reading
+from .drive import Drive, ParameterValue, Reading
 from .errors import ParameterError, ProtocolException, TransportError, VfdError
 from .faults import NO_FAULT, FaultInfo
 from .watchdog import CommandWatchdog
@@ -115,7 +115,7 @@ Action = Generator[None, None, ActionResult]
 class DriveController:
     """Runs one drive: connect, command, poll, watchdog, service actions."""
 
-    def __init__(self, drive: ModbusDrive, config: ControllerConfig,
+    def __init__(self, drive: Drive, config: ControllerConfig,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.drive = drive
         self.config = config
@@ -179,8 +179,8 @@ class DriveController:
 
     def start(self) -> None:
         if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=f'drive {self.drive.hardware_id}',
-                                            daemon=True)
+            self._thread = threading.Thread(
+                target=self._run, name=f'drive {self.drive.hardware_id}', daemon=True)
             self._thread.start()
 
     def shutdown(self, timeout: float = 2.0) -> None:
@@ -244,23 +244,11 @@ class DriveController:
         log.info('%s online', drive.hardware_id)
 
     def _configure(self) -> None:
-        """Write the drive's comm timeout and bus-control settings (only if different)."""
-        profile = self.drive.profile
-        wanted: list[tuple[str, float]] = []
-        if profile.comm_timeout is not None and self.config.drive_comm_timeout >= 0:
-            wanted.append((profile.comm_timeout.parameter, self.config.drive_comm_timeout))
-        if self.config.apply_commissioning:
-            wanted += [(item.code, item.value) for item in profile.commissioning]
-        for code, value in wanted:
-            try:
-                parameter, raw = self.drive.check_write(code, value, running=False)
-            except ParameterError as exc:
-                # A setting the drive cannot take (e.g. 0 = "off" where the manual has
-                # no off value) must not keep the drive offline: report and go on.
-                log.error('%s: not written at connect: %s', self.drive.hardware_id, exc)
-                continue
-            if self.drive.read_value(parameter).raw != raw:
-                self.drive.write_raw(parameter, raw)
+        for problem in self.drive.configure(self.config.drive_comm_timeout,
+                                            self.config.apply_commissioning):
+            # A setting the drive cannot take (e.g. 0 = "off" where the manual has
+            # no off value) must not keep the drive offline: report and go on.
+            log.error('%s: not applied at connect: %s', self.drive.hardware_id, problem)
 
     def _cycle_failed(self, exc: VfdError) -> None:
         self._failed_cycles += 1
@@ -338,7 +326,8 @@ class DriveController:
                 return
             future.set_result(ActionResult(False, reason))
 
-    def _wait_for(self, condition: Callable[[], bool], timeout: float) -> Generator[None, None, bool]:
+    def _wait_for(self, condition: Callable[[], bool],
+                  timeout: float) -> Generator[None, None, bool]:
         deadline = self._clock() + timeout
         while True:
             yield

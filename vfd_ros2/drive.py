@@ -8,15 +8,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Protocol
 
 from .errors import ParameterError, ProfileError
 from .faults import NO_FAULT, FaultInfo, describe_fault
-from .profile import (Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal,
-                      SpeedUnit)
+from .profile import Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal, SpeedUnit
 from .registers import ReadBlock, decode_words, encode_words, plan_reads
 from .scaling import VelocityScaling
-from .transports.base import RegisterTransport
+from .transports.base import RegisterTransport, Transport
 
 #: monitor roles that map onto DriveStatus fields, with the SI unit they carry
 MEASURED_ROLES = ('output_frequency', 'output_current', 'dc_bus_voltage', 'temperature')
@@ -44,6 +43,42 @@ class ParameterValue:
     @property
     def text(self) -> str:
         return self.parameter.option_text(self.raw)
+
+
+class Drive(Protocol):
+    """What the controller needs from a drive, whatever the bus.
+
+    ``ModbusDrive`` below implements it on a register transport; other buses
+    (e.g. CANopen) implement the same verbs. Every method finishes within a few
+    transport timeouts or raises a VfdError.
+    """
+
+    profile: Profile
+    transport: Transport
+    last_setpoint_raw: int
+
+    @property
+    def hardware_id(self) -> str: ...
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def forget_state(self) -> None: ...
+
+    def configure(self, drive_comm_timeout: float, apply_commissioning: bool) -> list[str]:
+        """Connect-time writes; returns the problems that did not stop the connect."""
+
+    def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None: ...
+
+    def send_command(self, action: str) -> None: ...
+
+    def poll(self, cycle: int) -> Reading: ...
+
+    def get_parameter(self, key: str) -> ParameterValue: ...
+
+    def set_parameter(self, key: str, value: float, persistent: bool,
+                      running: bool) -> tuple[ParameterValue, str]: ...
 
 
 class ModbusDrive:
@@ -94,6 +129,24 @@ class ModbusDrive:
         """After a link loss nothing read or written before is trusted."""
         self._words.clear()
         self.asserted_command = None
+
+    def configure(self, drive_comm_timeout: float, apply_commissioning: bool) -> list[str]:
+        """Write the drive's comm timeout and bus-control settings, only where they differ."""
+        wanted: list[tuple[str, float]] = []
+        if self.profile.comm_timeout is not None and drive_comm_timeout >= 0:
+            wanted.append((self.profile.comm_timeout.parameter, drive_comm_timeout))
+        if apply_commissioning:
+            wanted += [(item.code, item.value) for item in self.profile.commissioning]
+        problems = []
+        for code, value in wanted:
+            try:
+                parameter, raw = self.check_write(code, value, running=False)
+            except ParameterError as exc:
+                problems.append(str(exc))
+                continue
+            if self.read_value(parameter).raw != raw:
+                self.write_raw(parameter, raw)
+        return problems
 
     # --- register access ------------------------------------------------------
 

@@ -15,7 +15,7 @@ import importlib
 from importlib import metadata
 
 from ..errors import TransportLoadError
-from .base import RegisterTransport, TransportParameter, TransportStats
+from .base import RegisterTransport, Transport, TransportParameter, TransportStats
 
 ENTRY_POINT_GROUP = 'vfd_ros2.transports'
 
@@ -25,7 +25,8 @@ BUILTIN_TRANSPORTS: dict[str, str] = {
 }
 
 __all__ = [
-    'BUILTIN_TRANSPORTS', 'ENTRY_POINT_GROUP', 'RegisterTransport', 'TransportParameter',
+    'BUILTIN_TRANSPORTS', 'ENTRY_POINT_GROUP', 'RegisterTransport', 'Transport',
+    'TransportParameter',
     'TransportStats', 'available_transports', 'load_transport_class',
 ]
 
@@ -38,8 +39,8 @@ def available_transports() -> list[str]:
     return sorted(set(BUILTIN_TRANSPORTS) | set(_entry_points()))
 
 
-def load_transport_class(name: str) -> type[RegisterTransport]:
-    """The transport class registered under ``name``; TransportLoadError if none."""
+def load_transport_class(name: str) -> type[Transport]:
+    """Return the transport class registered under ``name``; TransportLoadError if none."""
     try:
         if name in BUILTIN_TRANSPORTS:
             module_name, _, class_name = BUILTIN_TRANSPORTS[name].partition(':')
@@ -53,6 +54,6 @@ def load_transport_class(name: str) -> type[RegisterTransport]:
         raise
     except (ImportError, AttributeError) as exc:
         raise TransportLoadError(f'transport {name!r} cannot be loaded: {exc}') from exc
-    if not (isinstance(cls, type) and issubclass(cls, RegisterTransport)):
-        raise TransportLoadError(f'transport {name!r} is not a RegisterTransport: {cls!r}')
+    if not (isinstance(cls, type) and issubclass(cls, Transport)):
+        raise TransportLoadError(f'transport {name!r} is not a vfd_ros2 Transport: {cls!r}')
     return cls

@@ -33,17 +33,20 @@ class TransportStats:
         return self.timeouts + self.bad_frames + self.exceptions + self.connect_failures
 
 
-class RegisterTransport(abc.ABC):
-    """Moves 16-bit register values to and from one unit on a link.
+class Transport(abc.ABC):
+    """A link to one drive, found by name through the plugin registry.
 
-    Implementations know nothing of drives, scaling or ROS. Every method either
-    completes within the configured timeout or raises a ``TransportError`` /
-    ``ProtocolException``; none may block indefinitely. Calls come from one
-    thread at a time.
+    Implementations know nothing of ROS. Every method either completes within
+    the configured timeout or raises a ``TransportError`` / ``ProtocolException``;
+    none may block indefinitely. Calls come from one thread at a time.
+    ``drive_class`` is what turns a profile plus this transport into drive verbs
+    (``vfd_ros2.drive.Drive``); register transports use ``ModbusDrive``.
     """
 
     #: settings the node declares for this transport (name, default, description)
     parameters: ClassVar[tuple[TransportParameter, ...]] = ()
+    #: "module:Class" of the drive implementation for this transport
+    drive_class: ClassVar[str] = 'vfd_ros2.drive:ModbusDrive'
 
     def __init__(self) -> None:
         self.stats = TransportStats()
@@ -70,6 +73,17 @@ class RegisterTransport(abc.ABC):
     def close(self) -> None:
         """Close the link (idempotent, never raises)."""
 
+    def __enter__(self) -> 'Transport':
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RegisterTransport(Transport):
+    """Moves 16-bit register values to and from one unit on a link (Modbus style)."""
+
     @abc.abstractmethod
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
         """Read ``count`` holding registers starting at ``address``."""
@@ -81,10 +95,3 @@ class RegisterTransport(abc.ABC):
     @abc.abstractmethod
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
         """Write consecutive holding registers in one request."""
-
-    def __enter__(self) -> 'RegisterTransport':
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -10,8 +10,8 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 
-from ..profile import Profile
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
+from ..profile import Profile
 from .base import RegisterTransport, TransportParameter
 
 # The driver counts and reports every failed exchange itself (status counters,
@@ -126,9 +126,9 @@ class ModbusRtuTransport(_PymodbusTransport):
 
     parameters = (
         TransportParameter('port', '/dev/ttyUSB0', 'serial device of the RS-485 line'),
-        TransportParameter('baudrate', 0, 'bit/s; 0 = the drive\'s factory setting'),
-        TransportParameter('parity', '', 'N, E or O; empty = the drive\'s factory setting'),
-        TransportParameter('stopbits', 0, '1 or 2; 0 = the drive\'s factory setting'),
+        TransportParameter('baudrate', 0, "bit/s; 0 = the drive's factory setting"),
+        TransportParameter('parity', '', "N, E or O; empty = the drive's factory setting"),
+        TransportParameter('stopbits', 0, "1 or 2; 0 = the drive's factory setting"),
         TransportParameter('timeout', 0.1, 'reply timeout in seconds'),
     )
 
@@ -168,7 +168,7 @@ class ModbusTcpTransport(_PymodbusTransport):
     """Modbus TCP (e.g. a drive's Ethernet option card)."""
 
     parameters = (
-        TransportParameter('host', '127.0.0.1', 'IP address of the drive\'s Modbus TCP card'),
+        TransportParameter('host', '127.0.0.1', "IP address of the drive's Modbus TCP card"),
         TransportParameter('port', 502, 'TCP port'),
         TransportParameter('timeout', 0.2, 'reply timeout in seconds'),
     )
