@@ -11,8 +11,8 @@ import math
 import time
 
 import pytest
-from harness import wait_for
 
+from harness import wait_for
 from vfd_ros2.profile import Access, available_profiles, load_profile
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
@@ -20,7 +20,7 @@ FAMILIES = available_profiles()
 
 
 def writable_parameter(profile):
-    """A writable, ranged, non-enumerated parameter an integrator would tune."""
+    """Find a writable, ranged, non-enumerated parameter an integrator would tune."""
     for key in ('acceleration_time', 'deceleration_time'):
         try:
             return profile.parameter(key)
@@ -36,7 +36,7 @@ def writable_parameter(profile):
 
 
 def some_value(parameter):
-    """A valid value different from the default, on the resolution grid."""
+    """Pick a valid value different from the default, on the resolution grid."""
     steps = round((parameter.maximum - parameter.minimum) / parameter.scale)
     raw = round(parameter.minimum / parameter.scale) + max(1, steps // 3)
     return raw * parameter.scale
@@ -138,3 +138,22 @@ def test_comm_loss_and_recovery(make_harness, family):
 def test_every_family_is_covered():
     assert {'boneng_am', 'boneng_mh', 'veichi_ehs100', 'kinco_ec', 'imo_hd2'} <= set(FAMILIES)
     assert load_profile('imo_hd2').transports == ('modbus_tcp',)
+
+
+@pytest.mark.parametrize('family', [f for f in FAMILIES if load_profile(f).setpoints])
+def test_auxiliary_setpoint_topics(make_harness, family):
+    from std_msgs.msg import Float64
+    h = make_harness(profile=family)
+    for topic, code in h.profile.setpoints.items():
+        parameter = h.profile.parameter(code)
+        value = some_value(parameter)
+        publisher = h.tester.create_publisher(Float64, f'drive/{topic}', 10)
+        wait_for(lambda: publisher.get_subscription_count() > 0, 5.0, f'{topic} subscriber')
+        for bad in (math.nan, parameter.maximum + 100 * parameter.scale):
+            publisher.publish(Float64(data=bad))
+        publisher.publish(Float64(data=value))
+        wait_for(lambda: h.sim.value(code) == pytest.approx(value), 3.0, f'{topic} written')
+        # The invalid values were dropped: the only writes on the wire carry the valid one.
+        written = {int.from_bytes(frame[4:6], 'big') for _, frame in h.line.received
+                   if frame[1] == 6 and int.from_bytes(frame[2:4], 'big') == parameter.address}
+        assert written == {parameter.to_raw(value)}

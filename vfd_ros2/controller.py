@@ -123,6 +123,8 @@ class DriveController:
         self._lock = threading.Lock()
         self._watchdog = CommandWatchdog(config.command_timeout, clock)
         self._velocity = 0.0
+        self._setpoints: dict[str, int] = {}
+        self._written_setpoints: dict[str, int] = {}
         self._rejected = 0
         self._clamped = 0
         self._enabled = config.auto_enable
@@ -166,6 +168,19 @@ class DriveController:
                 self._clamped += 1
                 return CommandOutcome.CLAMPED
         return CommandOutcome.ACCEPTED
+
+    def command_setpoint(self, topic: str, value: float) -> None:
+        """Accept an auxiliary setpoint (profile ``setpoints``); ParameterError if invalid.
+
+        Validated here, written by the loop when it changes (RAM write).
+        """
+        code = self.drive.profile.setpoints.get(topic)
+        if code is None:
+            raise ParameterError(f'{topic!r} is not a setpoint of this drive')
+        parameter = self.drive.profile.parameter(code)
+        raw = parameter.to_raw(value)
+        with self._lock:
+            self._setpoints[code] = raw
 
     def submit(self, name: str, *args: object) -> Future:
         """Queue a service action; the Future resolves to an ActionResult."""
@@ -233,6 +248,7 @@ class DriveController:
             drive.close()
             self._next_connect = self._clock() + self.config.reconnect_period
             return
+        self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
         self._online = True
@@ -270,6 +286,7 @@ class DriveController:
             velocity = self._velocity
             expired = self._watchdog.expired
         self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
+        self._write_setpoints()
         self._reading = self.drive.poll(self._cycle)
         self._cycle += 1
         if self._reading.fault.active and not self._fault_latched:
@@ -277,6 +294,14 @@ class DriveController:
             log.warning('%s fault %s %s', self.drive.hardware_id,
                         self._reading.fault.display, self._reading.fault.name)
         self._advance_action()
+
+    def _write_setpoints(self) -> None:
+        with self._lock:
+            pending = {code: raw for code, raw in self._setpoints.items()
+                       if self._written_setpoints.get(code) != raw}
+        for code, raw in pending.items():
+            self.drive.write_setpoint_parameter(code, raw)
+            self._written_setpoints[code] = raw
 
     def _final_stop(self) -> None:
         if self._online:

@@ -73,6 +73,9 @@ class Drive(Protocol):
 
     def send_command(self, action: str) -> None: ...
 
+    def write_setpoint_parameter(self, code: str, raw: int) -> None:
+        """Write an already validated auxiliary setpoint (volatile where possible)."""
+
     def poll(self, cycle: int) -> Reading: ...
 
     def get_parameter(self, key: str) -> ParameterValue: ...
@@ -210,6 +213,14 @@ class ModbusDrive:
             raise ParameterError(f'{self.profile.name} has no {action!r} command')
         self.write_raw(self._command, values[action])
         self.asserted_command = action
+
+    def write_setpoint_parameter(self, code: str, raw: int) -> None:
+        parameter = self.profile.parameter(code)
+        persistence = self.profile.modbus.persistence
+        address = parameter.address
+        if persistence.kind is PersistenceKind.ADDRESS_FLAG and persistence.covers(address):
+            address |= persistence.flag   # RAM only: cyclic values must not wear the EEPROM
+        self.write_raw(parameter, raw, address)
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None:
         """One control cycle: write the setpoint, then (re)assert run or idle.

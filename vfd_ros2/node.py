@@ -2,6 +2,8 @@
 
 Topics (relative to the node, e.g. /agv/left_wheel/drive/...):
   ~/velocity_command  std_msgs/Float64        in: rad/s at the output shaft
+  ~/<setpoint>        std_msgs/Float64        in: the profile's extra setpoints (e.g.
+                                              ~/pressure_setpoint), engineering units
   ~/status            vfd_ros2/DriveStatus    out: at status_rate
   ~/fault             vfd_ros2/DriveFault     out: on change, transient local
   /diagnostics        diagnostic_msgs/DiagnosticArray
@@ -66,6 +68,9 @@ class DriveNode(Node):
         self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
+        for topic in self.controller.drive.profile.setpoints:
+            self.create_subscription(Float64, f'~/{topic}',
+                                     lambda msg, t=topic: self._on_setpoint(t, msg), 10)
         self.create_service(GetDriveParameter, '~/get_drive_parameter', self._on_get_parameter)
         self.create_service(SetDriveParameter, '~/set_drive_parameter', self._on_set_parameter)
         for action in ('enable', 'disable', 'stop', 'reset_fault'):
@@ -95,6 +100,15 @@ class DriveNode(Node):
                     f'{self.controller.config.max_velocity}', throttle_duration_sec=1.0)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'velocity command failed: {exc}')
+
+    def _on_setpoint(self, topic: str, msg: Float64) -> None:
+        try:
+            self.controller.command_setpoint(topic, msg.data)
+        except VfdError as exc:
+            self.get_logger().warning(f'rejected {topic} {msg.data}: {exc}',
+                                      throttle_duration_sec=1.0)
+        except Exception as exc:  # noqa: BLE001 - never raise into the executor
+            self.get_logger().error(f'{topic} failed: {exc}')
 
     def _publish_status(self) -> None:
         try:

@@ -331,6 +331,9 @@ class Profile:
     faults: FaultSpec
     comm_timeout: CommTimeoutSpec | None = None
     commissioning: tuple[CommissioningWrite, ...] = ()
+    # Extra setpoints published as ~/<topic> (Float64, engineering units), e.g.
+    # the pressure and flow commands of a servo-pump drive: topic -> code.
+    setpoints: Mapping[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     source_file: str = ''
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
@@ -651,6 +654,7 @@ def _load_profile_file(path: Path) -> Profile:
         faults=faults,
         comm_timeout=comm_timeout,
         commissioning=tuple(commissioning),
+        setpoints={str(k): str(v) for k, v in (r.get('setpoints', {}) or {}).items()},
         notes=tuple(str(n) for n in r.get('notes', []) or []),
         source_file=str(path),
         _by_name=by_name,
@@ -682,6 +686,7 @@ def _check_references(profile: Profile) -> None:
     referenced += [(f'monitor.{s.role}', s.code) for s in profile.monitor]
     referenced += [(f'status_words[{i}]', c) for i, c in enumerate(profile.status_words)]
     referenced += [(f'commissioning.{c.code}', c.code) for c in profile.commissioning]
+    referenced += [(f'setpoints.{topic}', code) for topic, code in profile.setpoints.items()]
     if profile.comm_timeout:
         referenced.append(('comm_timeout.parameter', profile.comm_timeout.parameter))
     if profile.modbus.persistence.kind is PersistenceKind.SWITCH_PARAMETER:
@@ -700,6 +705,9 @@ def _check_references(profile: Profile) -> None:
     if profile.velocity.direction is DirectionMode.COMMAND and \
             'run_reverse' not in profile.control.values:
         raise ProfileError(f'{where}: direction "command" needs control.values.run_reverse')
+    for topic, code in profile.setpoints.items():
+        if not profile.parameters[code].writable:
+            raise ProfileError(f'{where}: setpoints.{topic} names read-only {code}')
     for signal in profile.monitor:
         if signal.every < 1:
             raise ProfileError(f'{where}: monitor.{signal.role}.every must be >= 1')
