@@ -119,3 +119,17 @@ def test_drive_launch_file_passes_the_params_file(monkeypatch):
     node = next(a for a in actions if a.kwargs.get('executable') == 'drive_node')
     assert node.kwargs['package'] == 'vfd_ros2'
     assert node.kwargs['parameters'][0].args == ('params_file',)
+
+
+@pytest.mark.parametrize('path', sorted((LAUNCH_DIR.parent / 'config').glob('*_drive.yaml')),
+                         ids=lambda p: p.name)
+def test_example_configs_build_a_controller(path):
+    """Every shipped example parameter file is valid for drive_node (nothing unknown)."""
+    from vfd_ros2.config import build_controller
+    from vfd_ros2.transports import load_transport_class
+    values = yaml.safe_load(path.read_text())['/**']['ros__parameters']
+    known = {s.name for s in SETTINGS} | {
+        f'transport.{p.name}' for p in load_transport_class(values['transport.type']).parameters}
+    assert set(values) <= known, set(values) - known
+    controller = build_controller(values)
+    assert controller.drive.profile.name == values['drive.profile']
