@@ -15,7 +15,7 @@ from .controller import ControllerConfig, DriveController
 from .errors import ParameterError
 from .profile import Profile, load_profile
 from .scaling import VelocityScaling
-from .transports import load_transport_class
+from .transports import Transport, load_transport_class
 
 
 @dataclass(frozen=True)
@@ -93,17 +93,25 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
     )
 
 
-def build_controller(values: Mapping[str, Any]) -> DriveController:
-    """Profile + transport + drive + loop from flat settings; raises VfdError."""
+def build_controller(values: Mapping[str, Any],
+                     transport: Transport | None = None) -> DriveController:
+    """Profile + transport + drive + loop from flat settings; raises VfdError.
+
+    With ``transport`` given (several drives on one bus) the drive shares it and
+    leaves opening and closing the port to the bus.
+    """
     merged = {s.name: s.default for s in SETTINGS}
     merged.update(values)
     profile = load_profile(str(merged['drive.profile']))
     transport_class = load_transport_class(str(merged['transport.type']))
-    settings = {p.name: p.default for p in transport_class.parameters}
-    settings.update(transport_settings(merged))
-    transport = transport_class.from_settings(settings, profile)
+    shared = transport is not None
+    if transport is None:
+        settings = {p.name: p.default for p in transport_class.parameters}
+        settings.update(transport_settings(merged))
+        transport = transport_class.from_settings(settings, profile)
     module_name, _, class_name = transport_class.drive_class.partition(':')
     drive_class = getattr(importlib.import_module(module_name), class_name)
+    extra = {'owns_transport': False} if shared else {}
     drive = drive_class(profile, transport, int(merged['transport.unit_id']),
-                        velocity_scaling(profile, merged))
+                        velocity_scaling(profile, merged), **extra)
     return DriveController(drive, controller_config(merged))

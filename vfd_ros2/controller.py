@@ -112,6 +112,53 @@ class DriveState:
 Action = Generator[None, None, ActionResult]
 
 
+
+class CycleLoop:
+    """Calls ``step`` every ``period`` seconds in its own thread, then ``finish``.
+
+    An exception in ``step`` is logged and the loop goes on: nothing may stop
+    the thread that keeps a traction drive under control. An overrun restarts
+    the schedule instead of bursting to catch up.
+    """
+
+    def __init__(self, name: str, period: float, step: Callable[[], None],
+                 finish: Callable[[], None], clock: Callable[[], float] = time.monotonic) -> None:
+        self.name = name
+        self.period = period
+        self._step = step
+        self._finish = finish
+        self._clock = clock
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self.overruns = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        next_cycle = self._clock()
+        while not self._stop.is_set():
+            try:
+                self._step()
+            except Exception as exc:  # noqa: BLE001 - the loop must survive anything
+                log.exception('%s: loop error: %s', self.name, exc)
+            next_cycle += self.period
+            delay = next_cycle - self._clock()
+            if delay < -self.period:
+                self.overruns += 1
+                next_cycle = self._clock()
+                delay = 0.0
+            self._stop.wait(max(delay, 0.0))
+        try:
+            self._finish()
+        except Exception as exc:  # noqa: BLE001
+            log.exception('%s: finish failed: %s', self.name, exc)
+
 class DriveController:
     """Runs one drive: connect, command, poll, watchdog, service actions."""
 
@@ -142,8 +189,8 @@ class DriveController:
         self._actions: queue.SimpleQueue[tuple[Callable[[], Action], Future]] = \
             queue.SimpleQueue()
         self._current: tuple[Iterator[None], Future] | None = None
-        self._stop_event = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._loop: CycleLoop | None = None
+        self._cycle_ok = False
         self._state = DriveState(hardware_id=drive.hardware_id)
 
     # --- thread-safe API ------------------------------------------------------
@@ -193,42 +240,52 @@ class DriveController:
         return future
 
     def start(self) -> None:
-        if self._thread is None:
-            self._thread = threading.Thread(
-                target=self._run, name=f'drive {self.drive.hardware_id}', daemon=True)
-            self._thread.start()
+        """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
+        if self._loop is None:
+            self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
+                                   self.step, self.finish, self._clock)
+            self._loop.start()
 
     def shutdown(self, timeout: float = 2.0) -> None:
         """Stop the loop; the drive is commanded to stop before the link closes."""
-        self._stop_event.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        if self._loop is not None:
+            self._loop.stop(timeout)
+            self._loop = None
 
-    # --- the loop ---------------------------------------------------------------
+    # --- one cycle, in two phases (a bus writes every drive's command first) -----
 
-    def _run(self) -> None:
-        next_cycle = self._clock()
-        while not self._stop_event.is_set():
-            try:
-                self._step()
-            except Exception as exc:  # noqa: BLE001 - the loop must survive anything
-                log.exception('drive loop error: %s', exc)
-                self._last_error = f'internal error: {exc}'
-            next_cycle += self.config.cycle_period
-            delay = next_cycle - self._clock()
-            if delay < -self.config.cycle_period:
-                next_cycle = self._clock()   # overrun: do not try to catch up
-                delay = 0.0
-            self._stop_event.wait(max(delay, 0.0))
-        self._final_stop()
+    def step(self) -> None:
+        self.command_phase()
+        self.poll_phase()
 
-    def _step(self) -> None:
+    def command_phase(self) -> None:
+        """Connect when due, then write the command and setpoints."""
+        self._cycle_ok = False
         if not self._online and self._clock() >= self._next_connect:
             self._connect()
-        if self._online:
+        if not self._online:
+            return
+        with self._lock:
+            velocity = self._velocity
+            expired = self._watchdog.expired
+        try:
+            self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
+            self._write_setpoints()
+            self._cycle_ok = True
+        except (TransportError, ProtocolException) as exc:
+            self._cycle_failed(exc)
+
+    def poll_phase(self) -> None:
+        """Read the status, latch faults, advance a service action, publish the state."""
+        if self._online and self._cycle_ok:
             try:
-                self._control_cycle()
+                self._reading = self.drive.poll(self._cycle)
+                self._cycle += 1
+                if self._reading.fault.active and not self._fault_latched:
+                    self._fault_latched = True
+                    log.warning('%s fault %s %s', self.drive.hardware_id,
+                                self._reading.fault.display, self._reading.fault.name)
+                self._advance_action()
                 self._failed_cycles = 0
             except (TransportError, ProtocolException) as exc:
                 self._cycle_failed(exc)
@@ -281,20 +338,6 @@ class DriveController:
                 and not self._fault_latched and not self._reading.fault.active
                 and not watchdog_expired)
 
-    def _control_cycle(self) -> None:
-        with self._lock:
-            velocity = self._velocity
-            expired = self._watchdog.expired
-        self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
-        self._write_setpoints()
-        self._reading = self.drive.poll(self._cycle)
-        self._cycle += 1
-        if self._reading.fault.active and not self._fault_latched:
-            self._fault_latched = True
-            log.warning('%s fault %s %s', self.drive.hardware_id,
-                        self._reading.fault.display, self._reading.fault.name)
-        self._advance_action()
-
     def _write_setpoints(self) -> None:
         with self._lock:
             pending = {code: raw for code, raw in self._setpoints.items()
@@ -303,7 +346,8 @@ class DriveController:
             self.drive.write_setpoint_parameter(code, raw)
             self._written_setpoints[code] = raw
 
-    def _final_stop(self) -> None:
+    def finish(self) -> None:
+        """End of the loop: command the drive to stop, then close the link."""
         if self._online:
             try:
                 self.drive.apply(0.0, run=False, idle_action='stop')

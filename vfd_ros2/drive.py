@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Mapping, Protocol
 
-from .errors import ParameterError, ProfileError
+from .errors import ParameterError, ProfileError, ProtocolException
 from .faults import NO_FAULT, FaultInfo, describe_fault
 from .profile import Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal, SpeedUnit
 from .registers import ReadBlock, decode_words, encode_words, plan_reads
@@ -88,11 +88,12 @@ class ModbusDrive:
     """One drive on a register transport, driven through its profile."""
 
     def __init__(self, profile: Profile, transport: RegisterTransport, unit_id: int,
-                 scaling: VelocityScaling) -> None:
+                 scaling: VelocityScaling, owns_transport: bool = True) -> None:
         if not 0 <= unit_id <= 247:
             raise ParameterError(f'unit id {unit_id} is outside 0..247')
         self.profile = profile
         self.transport = transport
+        self.owns_transport = owns_transport
         self.unit_id = unit_id
         self.scaling = scaling
         self._setpoint = profile.parameter(profile.velocity.setpoint)
@@ -126,7 +127,10 @@ class ModbusDrive:
         self.transport.open()
 
     def close(self) -> None:
-        self.transport.close()
+        # On a shared bus one silent drive must not close the port of the others;
+        # the transport reopens itself after a port-level failure anyway.
+        if self.owns_transport:
+            self.transport.close()
 
     def forget_state(self) -> None:
         """After a link loss nothing read or written before is trusted."""
@@ -153,15 +157,29 @@ class ModbusDrive:
 
     # --- register access ------------------------------------------------------
 
+    def _explained(self, exc: ProtocolException) -> ProtocolException:
+        """Return the exception with this drive's own meaning of the code (drives differ)."""
+        text = self.profile.modbus.exception_codes.get(exc.code, exc.text)
+        return ProtocolException(exc.code, text, exc.request)
+
     def _read(self, address: int, count: int) -> list[int]:
         limit = self.profile.modbus.max_read_registers
         words: list[int] = []
-        for offset in range(0, count, limit):
-            chunk = min(limit, count - offset)
-            words += self.transport.read_registers(self.unit_id, address + offset, chunk)
+        try:
+            for offset in range(0, count, limit):
+                chunk = min(limit, count - offset)
+                words += self.transport.read_registers(self.unit_id, address + offset, chunk)
+        except ProtocolException as exc:
+            raise self._explained(exc) from exc
         return words
 
     def _write(self, address: int, words: list[int]) -> None:
+        try:
+            self._write_words(address, words)
+        except ProtocolException as exc:
+            raise self._explained(exc) from exc
+
+    def _write_words(self, address: int, words: list[int]) -> None:
         codes = self.profile.modbus.function_codes
         if len(words) == 1 and 6 in codes:
             self.transport.write_register(self.unit_id, address, words[0])

@@ -50,14 +50,17 @@ FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
 class DriveNode(Node):
     """ROS face of one drive; all drive logic lives in DriveController."""
 
-    def __init__(self, node_name: str = 'drive', **kwargs: Any) -> None:
+    def __init__(self, node_name: str = 'drive', controller: DriveController | None = None,
+                 **kwargs: Any) -> None:
+        """Make a drive node; with ``controller`` given, a bus runs that controller's loop."""
         super().__init__(node_name, **kwargs)
         values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
         transport_class = load_transport_class(str(values['transport.type']))
         for setting in transport_class.parameters:
             name = f'transport.{setting.name}'
             values[name] = self._declare(name, setting.default, setting.description)
-        self.controller: DriveController = build_controller(values)
+        self._owns_controller = controller is None
+        self.controller: DriveController = controller or build_controller(values)
         self.profile_name = self.controller.drive.profile.name
         self.frame_id = str(values['frame_id'])
         self._ever_online = False
@@ -77,7 +80,8 @@ class DriveNode(Node):
             self.create_service(Trigger, f'~/{action}', self._trigger_handler(action))
         self.create_timer(1.0 / float(values['status_rate']), self._publish_status)
         self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics)
-        self.controller.start()
+        if self._owns_controller:
+            self.controller.start()
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
 
@@ -204,8 +208,9 @@ class DriveNode(Node):
         return response
 
     def destroy_node(self) -> None:
-        # Commands the drive to stop before the port closes.
-        self.controller.shutdown()
+        # Commands the drive to stop before the port closes (a bus does it for its drives).
+        if self._owns_controller:
+            self.controller.shutdown()
         super().destroy_node()
 
 

@@ -27,6 +27,8 @@ class TransportStats:
     bad_frames: int = 0
     exceptions: int = 0
     connect_failures: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
 
     @property
     def errors(self) -> int:
@@ -64,6 +66,10 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     def description(self) -> str:
         """Where this transport talks, for hardware ids and logs."""
+
+    def wire_seconds(self, byte_count: int, frames: int) -> float | None:
+        """Time ``byte_count`` bytes in ``frames`` frames occupy the medium (None: unknown)."""
+        return None
 
     @abc.abstractmethod
     def open(self) -> None:

@@ -48,7 +48,9 @@ class _PymodbusTransport(RegisterTransport):
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         # pymodbus hands over the accumulated receive buffer; remembering it
         # tells a silent drive (timeout) from a garbled reply (bad frame).
-        if not sending:
+        if sending:
+            self.stats.bytes_sent += len(data)
+        else:
             self._received = data
         return data
 
@@ -87,6 +89,8 @@ class _PymodbusTransport(RegisterTransport):
             self.stats.bad_frames += 1
             self.close()
             raise TransportError(f'{what}: {exc}') from exc
+        finally:
+            self.stats.bytes_received += len(self._received)
         if isinstance(reply, ExceptionResponse):
             self.stats.exceptions += 1
             code = reply.exception_code
@@ -162,6 +166,11 @@ class ModbusRtuTransport(_PymodbusTransport):
     @property
     def description(self) -> str:
         return f'{self.port}@{self.baudrate}-{self.bytesize}{self.parity}{self.stopbits}'
+
+    def wire_seconds(self, byte_count: int, frames: int) -> float:
+        """Characters on the wire plus the 3.5-character silence before each frame."""
+        bits = 1 + self.bytesize + (0 if self.parity.upper() == 'N' else 1) + self.stopbits
+        return (byte_count + 3.5 * frames) * bits / self.baudrate
 
 
 class ModbusTcpTransport(_PymodbusTransport):

@@ -1,0 +1,168 @@
+"""Several drives on one RS-485 line served by one bus_node process (in-process here)."""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
+
+from harness import wait_for
+from vfd_ros2.bus import parse_bus_config
+from vfd_ros2.bus_node import BusNode
+from vfd_ros2.errors import ParameterError
+from vfd_ros2.msg import DriveStatus
+from vfd_ros2.profile import load_profile
+from vfd_ros2.sim.model import SimulatedDrive
+from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+
+WHEELS = ('left', 'right')
+
+
+def bus_document(port: str, prefix: str) -> dict:
+    return {
+        'bus': {'name': 'rs485_0', 'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.timeout': 0.05, 'control_rate': 50.0},
+        'drives': {wheel: {'namespace': f'{prefix}/{wheel}', 'drive.profile': 'boneng_am',
+                           'transport.unit_id': unit, 'gear_ratio': 10.0, 'auto_enable': True,
+                           'status_rate': 50.0, 'invert_direction': wheel == 'right'}
+                   for unit, wheel in enumerate(WHEELS, start=1)},
+    }
+
+
+@pytest.fixture
+def agv_bus(ros_context, tmp_path):
+    profile = load_profile('boneng_am')
+    sims = {wheel: SimulatedDrive(profile, unit, {'acceleration_time': 0.5,
+                                                  'deceleration_time': 0.5})
+            for unit, wheel in enumerate(WHEELS, start=1)}
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(list(sims.values()), port).start()
+    prefix = f'/b{uuid.uuid4().hex[:6]}'
+    config = tmp_path / 'bus.yaml'
+    config.write_text(yaml.safe_dump(bus_document(port, prefix)))
+    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
+        Parameter('config_file', value=str(config))])
+    tester = Node('tester', context=ros_context)
+    statuses = {wheel: [] for wheel in WHEELS}
+    publishers = {}
+    for wheel in WHEELS:
+        tester.create_subscription(DriveStatus, f'{prefix}/{wheel}/drive/status',
+                                   statuses[wheel].append, 50)
+        publishers[wheel] = tester.create_publisher(Float64,
+                                                    f'{prefix}/{wheel}/drive/velocity_command',
+                                                    10)
+    diagnostics: list[DiagnosticArray] = []
+    tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 50)
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (bus, *bus.drive_nodes, tester):
+        executor.add_node(node)
+
+    def spin():
+        while ros_context.ok():
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - context shut down
+                return
+    threading.Thread(target=spin, daemon=True).start()
+    commands = {wheel: 0.0 for wheel in WHEELS}
+    streaming = threading.Event()
+    streaming.set()
+
+    def stream():
+        while streaming.is_set() and ros_context.ok():
+            for wheel in WHEELS:
+                publishers[wheel].publish(Float64(data=commands[wheel]))
+            time.sleep(0.05)
+    threading.Thread(target=stream, daemon=True).start()
+    state = type('AgvBus', (), {})()
+    state.__dict__.update(sims=sims, line=line, bus=bus, statuses=statuses,
+                          commands=commands, diagnostics=diagnostics)
+    yield state
+    streaming.clear()
+    bus.destroy_node()
+    tester.destroy_node()
+    line.stop()
+
+
+def last(statuses):
+    return statuses[-1] if statuses else None
+
+
+def test_both_drives_on_one_line_follow_their_commands(agv_bus):
+    agv_bus.commands.update(left=1.0, right=2.0)
+    for wheel, target in (('left', 1.0), ('right', 2.0)):
+        wait_for(lambda w=wheel, t=target: (s := last(agv_bus.statuses[w])) and s.running and
+                 abs(s.measured_velocity - t) < 0.02, 6.0, f'{wheel} at {target}')
+    assert agv_bus.sims['left'].speed_rpm > 0 > agv_bus.sims['right'].speed_rpm   # mirrored
+    diag = wait_for(lambda: next((st for d in agv_bus.diagnostics for st in d.status
+                                  if 'bus rs485_0' in st.name), None), 3.0, 'bus diagnostics')
+    values = {kv.key: kv.value for kv in diag.values}
+    assert diag.level == DiagnosticStatus.OK and float(values['transactions/s']) > 50
+    assert 0.0 < float(values['wire utilisation (%)']) < 100.0
+
+
+def test_a_dead_drive_does_not_stall_the_other(agv_bus):
+    agv_bus.commands.update(left=1.0, right=1.0)
+    wait_for(lambda: all((s := last(agv_bus.statuses[w])) and s.running for w in WHEELS), 6.0,
+             'both running')
+    agv_bus.sims['right'].silent = True                     # right drive unplugged
+    wait_for(lambda: not last(agv_bus.statuses['right']).online, 3.0, 'right offline')
+    before = last(agv_bus.statuses['left']).transactions
+    count_before = len(agv_bus.statuses['left'])
+    started = time.monotonic()
+    agv_bus.commands['left'] = -1.5
+    wait_for(lambda: abs(last(agv_bus.statuses['left']).measured_velocity + 1.5) < 0.02, 6.0,
+             'left still follows commands')
+    elapsed = time.monotonic() - started
+    left = last(agv_bus.statuses['left'])
+    assert left.online and left.reconnects == 0
+    # The left drive keeps its cycle: >= 10 transactions and >= 25 status messages per second.
+    assert (left.transactions - before) / elapsed > 10 * 7 * 0.5
+    assert (len(agv_bus.statuses['left']) - count_before) / elapsed > 25
+    warn = wait_for(lambda: next((st for d in agv_bus.diagnostics for st in d.status
+                                  if 'bus rs485_0' in st.name and
+                                  st.level == DiagnosticStatus.WARN), None), 3.0, 'bus WARN')
+    assert '1 of 2 drives offline' in warn.message
+    agv_bus.sims['right'].silent = False                    # plugged back in
+    wait_for(lambda: (s := last(agv_bus.statuses['right'])).online and s.fault, 6.0,
+             'right back, with its comm-loss fault')
+
+
+def test_shutdown_stops_every_drive_before_the_port_closes(agv_bus):
+    agv_bus.commands.update(left=1.0, right=1.0)
+    wait_for(lambda: all(sim.run_requested for sim in agv_bus.sims.values()), 6.0, 'running')
+    agv_bus.bus.bus.shutdown()
+    for sim in agv_bus.sims.values():
+        assert not sim.run_requested and sim.last_command_value == 4     # decelerate-stop
+
+
+def test_bus_file_is_validated():
+    good = bus_document('/dev/null', '/x')
+    assert [d.settings['transport.unit_id'] for d in parse_bus_config(good).drives] == [1, 2]
+    duplicate = bus_document('/dev/null', '/x')
+    duplicate['drives']['right']['transport.unit_id'] = 1
+    with pytest.raises(ParameterError, match='used twice'):
+        parse_bus_config(duplicate)
+    typo = bus_document('/dev/null', '/x')
+    typo['drives']['left']['gear_ration'] = 3
+    with pytest.raises(ParameterError, match='gear_ration'):
+        parse_bus_config(typo)
+    misplaced = bus_document('/dev/null', '/x')
+    misplaced['drives']['left']['transport.port'] = '/dev/ttyS1'
+    with pytest.raises(ParameterError, match='belongs to the bus'):
+        parse_bus_config(misplaced)
+
+
+def test_shipped_bus_config_is_valid():
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / 'config' / 'sim_agv_bus.yaml'
+    config = parse_bus_config(yaml.safe_load(path.read_text()))
+    assert [d.namespace for d in config.drives] == ['/agv/left_wheel', '/agv/right_wheel']

@@ -1,0 +1,156 @@
+"""Several drives on one link: one thread owns the port and serves every drive.
+
+Each cycle writes every drive's command first, then polls every drive's
+status, so a command never waits behind another drive's slow status read.
+A drive that does not answer costs one short timeout per reconnect period
+(its controller retries only every ``reconnect_period``), so it never stalls
+the others; it alone goes offline.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import yaml
+
+from .config import SETTINGS, build_controller
+from .controller import CycleLoop, DriveController
+from .errors import ParameterError
+from .transports.base import Transport
+
+#: settings that belong to the bus, not to one drive
+BUS_KEYS = ('control_rate',)
+
+
+@dataclass(frozen=True)
+class BusStatistics:
+    """Per-bus figures for /diagnostics."""
+
+    transactions_per_second: float
+    errors: int
+    timeouts: int
+    bad_frames: int
+    utilisation: float | None   # fraction of the wire's capacity in use (RTU), None if unknown
+    overruns: int
+
+
+@dataclass(frozen=True)
+class DriveEntry:
+    key: str
+    namespace: str
+    name: str
+    settings: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    name: str
+    settings: dict[str, Any]
+    drives: tuple[DriveEntry, ...]
+
+
+def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
+    """Validate a bus YAML document (see config/sim_agv_bus.yaml)."""
+    if not isinstance(data, Mapping) or 'bus' not in data or 'drives' not in data:
+        raise ParameterError('a bus file needs a "bus" mapping and a "drives" mapping')
+    bus = dict(data['bus'])
+    name = str(bus.pop('name', 'bus'))
+    known = {s.name for s in SETTINGS}
+    for key in bus:
+        if not (key.startswith('transport.') or key in BUS_KEYS):
+            raise ParameterError(f'bus setting {key!r}: only transport.* and {BUS_KEYS}')
+    if not isinstance(data['drives'], Mapping) or not data['drives']:
+        raise ParameterError('"drives" must map a name to each drive\'s settings')
+    drives = []
+    unit_ids = set()
+    for key, entry in data['drives'].items():
+        settings = dict(entry)
+        namespace = str(settings.pop('namespace', f'/{key}'))
+        node_name = str(settings.pop('name', 'drive'))
+        for setting in settings:
+            if setting.startswith('transport.') and setting != 'transport.unit_id':
+                raise ParameterError(f'drive {key}: {setting} belongs to the bus')
+            if not setting.startswith('transport.') and setting not in known:
+                raise ParameterError(f'drive {key}: unknown setting {setting!r}')
+        unit = settings.get('transport.unit_id', 1)
+        if unit in unit_ids:
+            raise ParameterError(f'drive {key}: unit id {unit} used twice on bus {name}')
+        unit_ids.add(unit)
+        drives.append(DriveEntry(str(key), namespace, node_name, settings))
+    return BusConfig(name, bus, tuple(drives))
+
+
+def load_bus_config(path: str) -> BusConfig:
+    try:
+        with open(path, encoding='utf-8') as stream:
+            return parse_bus_config(yaml.safe_load(stream))
+    except OSError as exc:
+        raise ParameterError(f'cannot read bus file {path}: {exc}') from exc
+
+
+class Bus:
+    """One transport, several drive controllers, one thread."""
+
+    def __init__(self, config: BusConfig, clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self._clock = clock
+        self.controllers: dict[str, DriveController] = {}
+        first = build_controller({**config.settings, **config.drives[0].settings})
+        self.transport: Transport = first.drive.transport
+        first.drive.owns_transport = False
+        self.controllers[config.drives[0].key] = first
+        for entry in config.drives[1:]:
+            self.controllers[entry.key] = build_controller(
+                {**config.settings, **entry.settings}, transport=self.transport)
+        rate = float(config.settings.get('control_rate', 50.0))
+        self.period = 1.0 / rate
+        self._loop: CycleLoop | None = None
+        self._lock = threading.Lock()
+        self._window: tuple[float, int] = (clock(), 0)
+        self._rate = 0.0
+
+    def step(self) -> None:
+        controllers = list(self.controllers.values())
+        for controller in controllers:          # commands first, for every drive ...
+            controller.command_phase()
+        for controller in controllers:          # ... then the slower status polls
+            controller.poll_phase()
+
+    def finish(self) -> None:
+        for controller in self.controllers.values():
+            controller.finish()
+        self.transport.close()
+
+    def start(self) -> None:
+        if self._loop is None:
+            self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
+                                   self.finish, self._clock)
+            self._loop.start()
+
+    def shutdown(self, timeout: float = 3.0) -> None:
+        if self._loop is not None:
+            self._loop.stop(timeout)
+            self._loop = None
+
+    def statistics(self) -> BusStatistics:
+        """Figures since the previous call (transactions/s, wire utilisation)."""
+        stats = self.transport.stats
+        now = self._clock()
+        with self._lock:
+            then, before = self._window
+            wire_before = getattr(self, '_wire_before', 0.0)
+            elapsed = max(now - then, 1e-6)
+            transactions = stats.transactions + stats.errors
+            rate = (stats.transactions - before) / elapsed
+            wire = self.transport.wire_seconds(stats.bytes_sent + stats.bytes_received,
+                                               transactions * 2)
+            utilisation = None if wire is None else (wire - wire_before) / elapsed
+            self._window = (now, stats.transactions)
+            self._wire_before = wire or 0.0
+        return BusStatistics(
+            transactions_per_second=rate, errors=stats.errors, timeouts=stats.timeouts,
+            bad_frames=stats.bad_frames, utilisation=utilisation,
+            overruns=self._loop.overruns if self._loop else 0)

@@ -1,0 +1,107 @@
+"""bus_node: one process owns one link (RS-485 line, TCP connection).
+
+It serves one ROS node per drive on it, with the same topics and services as drive_node.
+
+    ros2 run vfd_ros2 bus_node --ros-args -p config_file:=config/sim_agv_bus.yaml
+
+The bus file lists the link (``bus``: transport.* and control_rate) and the drives
+(``drives``: namespace, drive.profile, transport.unit_id and any drive_node
+setting). A per-bus entry on /diagnostics reports transactions/s, errors,
+timeouts and, for RS-485, the share of the wire's capacity in use.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from .bus import Bus, BusStatistics, load_bus_config
+from .errors import VfdError
+from .node import DriveNode
+
+
+def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
+                   drives_online: int, drives: int) -> DiagnosticStatus:
+    status = DiagnosticStatus(name=name, hardware_id=hardware_id)
+    if drives_online == 0:
+        status.level, status.message = DiagnosticStatus.ERROR, 'no drive answers'
+    elif drives_online < drives:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'{drives - drives_online} of {drives} drives offline'
+    else:
+        status.level, status.message = DiagnosticStatus.OK, f'{drives} drives online'
+    utilisation = 'unknown' if stats.utilisation is None else f'{100 * stats.utilisation:.1f}'
+    pairs = [('transactions/s', f'{stats.transactions_per_second:.1f}'),
+             ('errors', stats.errors), ('timeouts', stats.timeouts),
+             ('bad frames', stats.bad_frames), ('wire utilisation (%)', utilisation),
+             ('cycle overruns', stats.overruns), ('drives online', f'{drives_online}/{drives}')]
+    status.values = [KeyValue(key=k, value=str(v)) for k, v in pairs]
+    return status
+
+
+class BusNode(Node):
+    def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        path = self.declare_parameter('config_file', '', ParameterDescriptor(
+            description='bus YAML: the link and its drives')).value
+        self.config = load_bus_config(path)
+        self.bus = Bus(self.config)
+        self.drive_nodes: list[DriveNode] = []
+        for entry in self.config.drives:
+            values = {**self.config.settings, **entry.settings}
+            self.drive_nodes.append(DriveNode(
+                entry.name, controller=self.bus.controllers[entry.key],
+                namespace=entry.namespace, context=self.context,
+                parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.bus.start()
+        self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
+                               f'{self.bus.transport.description}')
+
+    def _publish_diagnostics(self) -> None:
+        try:
+            states = [c.state for c in self.bus.controllers.values()]
+            array = DiagnosticArray()
+            array.header.stamp = self.get_clock().now().to_msg()
+            array.status = [bus_diagnostic(
+                f'{self.get_fully_qualified_name().lstrip("/")}: bus {self.config.name}',
+                self.bus.transport.description, self.bus.statistics(),
+                sum(s.online for s in states), len(states))]
+            self.diagnostics_pub.publish(array)
+        except Exception as exc:  # noqa: BLE001 - never raise into the executor
+            self.get_logger().error(f'bus diagnostics failed: {exc}', throttle_duration_sec=5.0)
+
+    def destroy_node(self) -> None:
+        self.bus.shutdown()      # every drive is commanded to stop before the port closes
+        for node in self.drive_nodes:
+            node.destroy_node()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = BusNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        for drive_node in node.drive_nodes:
+            executor.add_node(drive_node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except VfdError as exc:
+        print(f'bus_node: {exc}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
