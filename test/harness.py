@@ -172,7 +172,7 @@ def ros_context():
 
 @pytest.fixture
 def make_harness(ros_context, tmp_path):
-    """Factory: make_harness(profile=..., sim_initial=..., node_parameters=...)."""
+    """Return a harness factory; it takes profile=, sim_initial= and node_parameters=."""
     made: list[DriveHarness] = []
 
     def make(**kwargs: Any) -> DriveHarness:

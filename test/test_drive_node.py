@@ -6,11 +6,10 @@ import math
 import time
 
 import pytest
-
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from harness import wait_for
 from pymodbus.framer import FramerRTU
 
+from harness import wait_for
 from vfd_ros2.scaling import RPM_PER_RAD_S
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
@@ -157,6 +156,7 @@ def test_unknown_fault_code_is_reported_not_crashing(make_harness):
 def test_late_subscriber_gets_current_fault(make_harness, ros_context):
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile
+
     from vfd_ros2.msg import DriveFault
     h = make_harness()
     h.sim.inject_fault(9, 1, latched=True)
@@ -243,7 +243,8 @@ def test_enable_disable_stop_are_verified(make_harness):
     h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'moving')
     reply = h.trigger('stop')
     assert reply.success, reply.message
-    assert not h.status.running and h.sim.speed_rpm == 0.0
+    h.wait_status(lambda s: not s.running, 2.0, 'not running after stop')
+    assert h.sim.speed_rpm == 0.0
     h.wait_status(lambda s: s.state == 'stopped', 2.0, 'stop latched')
     assert h.trigger('enable').success
     h.wait_status(lambda s: s.running, 5.0, 'running again')

@@ -31,7 +31,7 @@ class NodeSpec:
         return f'{self.namespace.rstrip("/")}/{self.name}'
 
     def params_document(self) -> dict[str, Any]:
-        """The ``--params-file`` YAML document for this node."""
+        """Return the ``--params-file`` YAML document for this node."""
         return {self.fully_qualified_name: {'ros__parameters': dict(self.parameters)}}
 
     def write_params_file(self, directory: Path) -> Path:
@@ -41,13 +41,13 @@ class NodeSpec:
         return path
 
     def command(self, params_file: Path) -> list[str]:
-        """argv for running the node as a process (``ros2 run`` equivalent)."""
+        """Return the argv for running the node as a process (``ros2 run`` equivalent)."""
         return [self.executable, '--ros-args', '-r', f'__ns:={self.namespace}',
                 '-r', f'__node:={self.name}', '--params-file', str(params_file)]
 
 
 def drive_spec(namespace: str, parameters: dict[str, Any], name: str = 'drive') -> NodeSpec:
-    """A drive_node; unknown parameter names are refused here, not at run time."""
+    """Describe a drive_node; unknown parameter names are refused here, not at run time."""
     known = {s.name for s in SETTINGS}
     unknown = [key for key in parameters if key not in known and
                not key.startswith('transport.')]
@@ -59,7 +59,7 @@ def drive_spec(namespace: str, parameters: dict[str, Any], name: str = 'drive') 
 def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
             gear_ratio: float = 10.0, ramp_time: float = 1.0) -> list[NodeSpec]:
-    """A simulated AGV: per wheel, a simulated drive on its own pty line and its driver.
+    """Describe a simulated AGV: per wheel, a simulated drive on its own pty line and its driver.
 
     The right wheel is mounted mirrored, so its driver inverts the direction:
     both wheels then turn "forward" for a positive command (REP 103).
@@ -84,6 +84,9 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             'invert_direction': index % 2 == 1,
             'max_velocity': 5.0,
             'command_timeout': 0.5,
+            # The drives' own comm-loss timeout: 1 s tolerates a loaded 2-core machine
+            # running simulators and drivers side by side (0.3 s on a real robot).
+            'drive_comm_timeout': 1.0,
             'frame_id': f'{wheel}_link',
         }))
     return specs

@@ -28,22 +28,22 @@ NO_FAULT = FaultInfo(0, 0, '', '', '', '', True)
 
 
 def describe_fault(spec: FaultSpec, code: int, subcode: int = 0) -> FaultInfo:
-    """The manual's name, cause and remedy for a fault code; never raises."""
+    """Return the manual's name, cause and remedy for a fault code; never raises."""
     if code == 0:
         return NO_FAULT
     try:
         display = spec.display_format.format(code=code, subcode=subcode)
-    except (ValueError, KeyError, IndexError):
+    except Exception:  # noqa: BLE001 - a bad format string in a profile must not crash polling
         display = f'{code}.{subcode}'
     entry = spec.table.get(code)
     if entry is None:
         return FaultInfo(code, subcode, display, f'unknown fault {code}',
-                         f'fault code {code} (sub-code {subcode}) is not in the profile\'s '
+                         f"fault code {code} (sub-code {subcode}) is not in the profile's "
                          'fault table', 'see the drive manual', known=False)
     detail = entry.subcodes.get(subcode, '')
     cause = entry.cause
     if detail:
         cause = f'{detail}. {cause}' if cause else detail
     elif subcode and entry.subcodes:
-        cause = f'sub-code {subcode} (not in the manual\'s list). {cause}'.strip()
+        cause = f"sub-code {subcode} (not in the manual's list). {cause}".strip()
     return FaultInfo(code, subcode, display, entry.name, cause, entry.remedy, known=True)

@@ -14,7 +14,7 @@ def to_signed(raw: int, bits: int) -> int:
 
 
 def decode_words(parameter: Parameter, words: list[int]) -> int:
-    """Registers as read -> the parameter's raw integer (sign applied)."""
+    """Decode registers as read into the parameter's raw integer (sign applied)."""
     if parameter.register_count == 1:
         raw = words[0] & 0xFFFF
     else:
@@ -29,7 +29,7 @@ def decode_words(parameter: Parameter, words: list[int]) -> int:
 
 
 def encode_words(parameter: Parameter, raw: int) -> list[int]:
-    """The parameter's raw integer -> the registers to write."""
+    """Encode the parameter's raw integer as the registers to write."""
     if parameter.register_count == 1:
         return [raw & 0xFFFF]
     value = raw & 0xFFFFFFFF
@@ -52,21 +52,28 @@ def plan_reads(spans: Iterable[tuple[int, int]], max_registers: int,
                readable: Callable[[int], bool]) -> list[ReadBlock]:
     """Fewest read requests covering every (address, count) span.
 
-    A block grows over the gap to the next wanted address only if it stays
+    A span (e.g. the two registers of a 32-bit value) is never split over two
+    requests. A block grows over the gap to the next span only if it stays
     within ``max_registers`` and every address in the gap is ``readable``
     (documented), because many drives refuse reads across undocumented ones.
     """
-    wanted = sorted({address + i for address, count in spans for i in range(count)})
+    units: list[list[int]] = []     # [first, last] of overlapping spans, sorted
+    for address, count in sorted(spans):
+        last = address + max(count, 1) - 1
+        if units and address <= units[-1][1]:
+            units[-1][1] = max(units[-1][1], last)
+        else:
+            units.append([address, last])
     blocks: list[ReadBlock] = []
-    start = last = None
-    for address in wanted:
-        if start is not None and address - start < max_registers and all(
-                readable(gap) for gap in range(last + 1, address)):
-            last = address
+    start = end = None
+    for first, last in units:
+        if start is not None and last - start < max_registers and all(
+                readable(gap) for gap in range(end + 1, first)):
+            end = last
             continue
         if start is not None:
-            blocks.append(ReadBlock(start, last - start + 1))
-        start = last = address
+            blocks.append(ReadBlock(start, end - start + 1))
+        start, end = first, last
     if start is not None:
-        blocks.append(ReadBlock(start, last - start + 1))
+        blocks.append(ReadBlock(start, end - start + 1))
     return blocks

@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Mapping
 
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
-from pymodbus.pdu.register_message import (ReadHoldingRegistersResponse,
-                                           WriteMultipleRegistersResponse,
-                                           WriteSingleRegisterResponse)
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersResponse,
+    WriteMultipleRegistersResponse,
+    WriteSingleRegisterResponse,
+)
 
 from .model import SimException, SimulatedDrive
 
@@ -37,7 +39,7 @@ def execute(drive: SimulatedDrive, request: ModbusPDU) -> ModbusPDU:
 
 
 def answer(drives: Mapping[int, SimulatedDrive], request: ModbusPDU) -> ModbusPDU | None:
-    """The reply on the line, or None (absent or silent drive, broadcast)."""
+    """Return the reply on the line, or None (absent or silent drive, broadcast)."""
     unit = request.dev_id
     targets = list(drives.values()) if unit == 0 else [drives[unit]] if unit in drives else []
     reply = None

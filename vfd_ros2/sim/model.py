@@ -22,8 +22,15 @@ import time
 from typing import Callable
 
 from ..errors import ParameterError
-from ..profile import (DirectionMode, FlagRule, FlagRuleKind, Parameter, PersistenceKind,
-                       Profile, SpeedUnit)
+from ..profile import (
+    DirectionMode,
+    FlagRule,
+    FlagRuleKind,
+    Parameter,
+    PersistenceKind,
+    Profile,
+    SpeedUnit,
+)
 from ..registers import decode_words, encode_words
 
 #: roles whose values come from the physics, not from inverting a flag rule
@@ -106,7 +113,7 @@ class SimulatedDrive:
             return fallback
 
     def exception(self, situation: str) -> SimException:
-        """The exception this drive answers in ``situation`` (see modbus.exception_for)."""
+        """Return the exception this drive answers in ``situation`` (see modbus.exception_for)."""
         codes = self.profile.modbus.exception_for
         code = codes.get(situation)
         if code is None and situation == 'too_many_registers':
@@ -191,7 +198,7 @@ class SimulatedDrive:
     # --- behaviour ------------------------------------------------------------------
 
     def bus_control(self) -> bool:
-        """The drive obeys the bus only once the commissioning values are set."""
+        """Return whether the drive obeys the bus: only once the commissioning values are set."""
         for item in self.profile.commissioning:
             parameter = self.profile.parameter(item.code)
             if self._raw(parameter) != round(item.value / parameter.scale):

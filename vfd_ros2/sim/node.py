@@ -54,7 +54,7 @@ class SimDriveNode(Node):
         transport = declare('transport', 'modbus_rtu', 'line type: modbus_rtu')
         port = declare('port', '/tmp/vfd_ros2/sim/line0', 'stable path of the emulated port')
         unit_ids = list(declare('unit_ids', [1], 'slave ids served on the line'))
-        baudrate = int(declare('baudrate', 0, 'bit/s; 0 = the profile\'s factory setting'))
+        baudrate = int(declare('baudrate', 0, "bit/s; 0 = the profile's factory setting"))
         wire_time = bool(declare('emulate_wire_time', False, 'delay replies by wire time'))
         corrupt = float(declare('corrupt_rate', 0.0, 'fraction of replies corrupted'))
         initial = parse_initial_values(declare(

@@ -52,8 +52,8 @@ def load_transport_class(name: str) -> type[Transport]:
                 f'unknown transport {name!r}; available: {", ".join(available_transports())}')
     except TransportLoadError:
         raise
-    except (ImportError, AttributeError) as exc:
-        raise TransportLoadError(f'transport {name!r} cannot be loaded: {exc}') from exc
+    except Exception as exc:  # noqa: BLE001 - whatever a plugin's import raises
+        raise TransportLoadError(f'transport {name!r} cannot be loaded: {exc!r}') from exc
     if not (isinstance(cls, type) and issubclass(cls, Transport)):
         raise TransportLoadError(f'transport {name!r} is not a vfd_ros2 Transport: {cls!r}')
     return cls

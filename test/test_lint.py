@@ -1,0 +1,31 @@
+"""The code base passes ruff with the project's settings (ruff.toml)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def ruff_command() -> list[str]:
+    """Ruff of this interpreter's environment: ``python -m ruff``, or the script beside it."""
+    try:
+        import ruff  # noqa: F401
+        return [sys.executable, '-m', 'ruff']
+    except ImportError:
+        pass
+    beside = Path(sys.executable).with_name('ruff')
+    found = str(beside) if beside.exists() else shutil.which('ruff')
+    assert found, 'ruff is not installed (it is pinned in requirements.txt)'
+    return [found]
+
+
+def test_ruff_check():
+    result = subprocess.run(
+        [*ruff_command(), 'check', '--no-cache', '--output-format', 'full', 'vfd_ros2', 'test'],
+        cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert (ROOT / 'ruff.toml').exists()
+    assert result.returncode == 0, f'ruff check failed:\n{result.stdout}\n{result.stderr}'

@@ -1,0 +1,282 @@
+"""Unit tests of the transport plugin registry, with a fake installed plugin (no I/O)."""
+
+from __future__ import annotations
+
+import math
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from unit_support import shipped_profile
+from vfd_ros2.drive import ModbusDrive
+from vfd_ros2.errors import TransportLoadError
+from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.transports import (
+    BUILTIN_TRANSPORTS,
+    ENTRY_POINT_GROUP,
+    RegisterTransport,
+    TransportParameter,
+    available_transports,
+    load_transport_class,
+)
+
+# --- built-in transports ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize('name, first_setting', [
+    ('modbus_rtu', 'port'),
+    ('modbus_tcp', 'host'),
+])
+def test_builtin_transports_load(name, first_setting):
+    cls = load_transport_class(name)
+    assert isinstance(cls, type) and issubclass(cls, RegisterTransport)
+    assert cls.__name__ == BUILTIN_TRANSPORTS[name].rpartition(':')[2]
+    assert cls.parameters, 'a transport declares its settings'
+    assert all(isinstance(p, TransportParameter) for p in cls.parameters)
+    names = [p.name for p in cls.parameters]
+    assert names[0] == first_setting
+    assert 'timeout' in names
+    assert len(set(names)) == len(names)
+    assert all(p.description for p in cls.parameters)
+
+
+def test_rtu_and_tcp_are_different_classes():
+    assert load_transport_class('modbus_rtu') is not load_transport_class('modbus_tcp')
+
+
+def test_builtins_are_available():
+    available = available_transports()
+    assert {'modbus_rtu', 'modbus_tcp'} <= set(available)
+    assert available == sorted(available)
+
+
+@pytest.mark.parametrize('name', ['modbus_udp', '', 'MODBUS_RTU', 'loopback'])
+def test_unknown_transport(name):
+    with pytest.raises(TransportLoadError) as info:
+        load_transport_class(name)
+    message = str(info.value)
+    assert f'unknown transport {name!r}' in message
+    assert 'modbus_rtu' in message and 'modbus_tcp' in message
+
+
+# --- an entry-point plugin, installed into tmp_path ----------------------------------------
+
+PLUGIN_SOURCE = """
+# A tiny in-memory register transport, shipped as a separate distribution.
+from vfd_ros2.transports.base import RegisterTransport, TransportParameter
+
+
+class LoopbackTransport(RegisterTransport):
+    parameters = (TransportParameter('size', 65536, 'number of registers'),)
+
+    def __init__(self):
+        super().__init__()
+        self.registers = {}
+        self.requests = []
+        self.is_open = False
+
+    @classmethod
+    def from_settings(cls, settings, profile):
+        return cls()
+
+    @property
+    def description(self):
+        return 'loopback'
+
+    def open(self):
+        self.is_open = True
+
+    def close(self):
+        self.is_open = False
+
+    def read_registers(self, unit, address, count):
+        self.stats.transactions += 1
+        self.requests.append(('read', unit, address, count))
+        return [self.registers.get(address + i, 0) for i in range(count)]
+
+    def write_register(self, unit, address, value):
+        self.stats.transactions += 1
+        self.requests.append(('write', unit, address, value))
+        self.registers[address] = value
+
+    def write_registers(self, unit, address, values):
+        self.stats.transactions += 1
+        self.requests.append(('write_many', unit, address, list(values)))
+        for offset, value in enumerate(values):
+            self.registers[address + offset] = value
+
+
+class NotATransport:
+    pass  # has the right shape of name, but is not a RegisterTransport
+
+
+not_even_a_class = 42
+"""
+
+ENTRY_POINTS = f"""\
+[{ENTRY_POINT_GROUP}]
+loopback = fake_vfd_plugin:LoopbackTransport
+not_a_transport = fake_vfd_plugin:NotATransport
+not_a_class = fake_vfd_plugin:not_even_a_class
+missing_class = fake_vfd_plugin:NoSuchTransport
+broken_import = fake_vfd_broken:Transport
+explodes_on_import = fake_vfd_explodes:Transport
+modbus_rtu = fake_vfd_plugin:NotATransport
+"""
+
+PLUGIN_MODULES = ('fake_vfd_plugin', 'fake_vfd_broken', 'fake_vfd_explodes')
+
+
+@pytest.fixture
+def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Install the fake distribution: a dist-info folder plus its modules, on sys.path."""
+    dist_info = tmp_path / 'fake_vfd_plugin-0.1.dist-info'
+    dist_info.mkdir()
+    (dist_info / 'METADATA').write_text(
+        'Metadata-Version: 2.1\nName: fake-vfd-plugin\nVersion: 0.1\n', encoding='utf-8')
+    (dist_info / 'entry_points.txt').write_text(ENTRY_POINTS, encoding='utf-8')
+    (tmp_path / 'fake_vfd_plugin.py').write_text(textwrap.dedent(PLUGIN_SOURCE),
+                                                 encoding='utf-8')
+    (tmp_path / 'fake_vfd_broken.py').write_text(
+        'import vfd_ros2_dependency_that_is_not_installed  # noqa: F401\n', encoding='utf-8')
+    (tmp_path / 'fake_vfd_explodes.py').write_text(
+        "raise RuntimeError('plugin initialisation failed')\n", encoding='utf-8')
+    for module in PLUGIN_MODULES:
+        monkeypatch.delitem(sys.modules, module, raising=False)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield tmp_path
+    for module in PLUGIN_MODULES:
+        sys.modules.pop(module, None)
+
+
+def test_plugin_is_listed(plugin):
+    available = available_transports()
+    assert 'loopback' in available
+    assert {'modbus_rtu', 'modbus_tcp'} <= set(available)
+    assert available.count('modbus_rtu') == 1
+    assert available == sorted(available)
+
+
+def test_plugin_is_not_listed_without_its_distribution():
+    assert 'loopback' not in available_transports()
+
+
+def test_plugin_loads(plugin):
+    cls = load_transport_class('loopback')
+    assert cls.__name__ == 'LoopbackTransport'
+    assert cls.__module__ == 'fake_vfd_plugin'
+    assert issubclass(cls, RegisterTransport)
+    assert [p.name for p in cls.parameters] == ['size']
+    transport = cls.from_settings({'size': 10}, shipped_profile('boneng_am'))
+    transport.write_registers(1, 0x10, [5, 6])
+    assert transport.read_registers(1, 0x0F, 4) == [0, 5, 6, 0]
+    assert transport.stats.transactions == 2
+
+
+def test_builtin_wins_over_a_plugin_of_the_same_name(plugin):
+    cls = load_transport_class('modbus_rtu')
+    assert cls.__module__ == 'vfd_ros2.transports.modbus'
+
+
+def test_unknown_transport_lists_plugins(plugin):
+    with pytest.raises(TransportLoadError) as info:
+        load_transport_class('can_open')
+    assert 'loopback' in str(info.value)
+
+
+@pytest.mark.parametrize('name', ['not_a_transport', 'not_a_class'])
+def test_plugin_that_is_not_a_transport(plugin, name):
+    with pytest.raises(TransportLoadError) as info:
+        load_transport_class(name)
+    assert f"transport '{name}' is not a" in str(info.value)
+
+
+def test_plugin_whose_module_fails_to_import(plugin):
+    with pytest.raises(TransportLoadError) as info:
+        load_transport_class('broken_import')
+    message = str(info.value)
+    assert "transport 'broken_import' cannot be loaded" in message
+    assert 'vfd_ros2_dependency_that_is_not_installed' in message
+
+
+def test_plugin_whose_class_is_missing(plugin):
+    with pytest.raises(TransportLoadError, match="'missing_class' cannot be loaded"):
+        load_transport_class('missing_class')
+
+
+def test_plugin_whose_module_raises_on_import(plugin):
+    with pytest.raises(TransportLoadError, match='explodes_on_import'):
+        load_transport_class('explodes_on_import')
+
+
+# --- contract: the drive layer works over any RegisterTransport --------------------------------
+
+def words(value: int) -> int:
+    """Return the register word of a signed 16-bit value (two's complement, by hand)."""
+    return value + 0x10000 if value < 0 else value
+
+
+def test_drive_polls_over_the_plugin_transport(plugin):
+    profile = shipped_profile('boneng_am')
+    transport = load_transport_class('loopback').from_settings({}, profile)
+    scaling = VelocityScaling(gear_ratio=10.0, rated_speed_rpm=1330.0, pole_pairs=2)
+    drive = ModbusDrive(profile, transport, 3, scaling)
+    assert drive.hardware_id == 'boneng_am@loopback#3'
+
+    regs = transport.registers
+    regs[0x2003] = words(-2217)           # A00.03 output frequency: -22.17 Hz (0.01 Hz)
+    regs[0x2006] = words(-665)            # A00.06 motor speed: -665 rpm
+    regs[0x2008] = 1234                   # A00.08 output current: 12.34 A
+    regs[0x200E] = 5400                   # A00.14 DC bus: 540.0 V (0.1 V)
+    regs[0x200F] = words(-12)             # A00.15 heatsink: -12 degC
+    regs[0x2100] = 35                     # A01.00 fault code
+    regs[0x2101] = 3                      # A01.01 sub-code
+    regs[0xE101] = 1                      # P01.01 ready for run
+    regs[0xE102] = 1                      # P01.02 running
+
+    drive.open()
+    assert transport.is_open
+    reading = drive.poll(0)
+
+    assert reading.values['motor_speed'] == -665
+    assert reading.values['output_frequency'] == pytest.approx(-22.17)
+    assert reading.values['output_current'] == pytest.approx(12.34)
+    assert reading.values['dc_bus_voltage'] == pytest.approx(540.0)
+    assert reading.values['temperature'] == -12
+    # -665 rpm at the motor through 10:1 = -66.5 rpm at the wheel.
+    assert reading.measured_velocity == pytest.approx(-66.5 * 2 * math.pi / 60)
+    assert reading.flags == {'ready': True, 'running': True, 'fault': True,
+                             'warning': False, 'reverse': True}
+    assert reading.fault.display == 'E35.03'
+    assert reading.fault.name == 'Communication exception'
+    assert reading.raw_words == {'A00.00': 0, 'P01.01': 1, 'P01.02': 1}
+
+    # The reads honour the profile's limits: at most 5 registers, never an
+    # undocumented address (gaps_readable is false for this drive).
+    reads = [r for r in transport.requests if r[0] == 'read']
+    assert reads and all(r[1] == 3 for r in reads)
+    for _, _, start, count in reads:
+        assert 1 <= count <= profile.modbus.max_read_registers
+        for address in range(start, start + count):
+            assert profile.parameter_at(address) is not None, hex(address)
+
+
+def test_drive_writes_over_the_plugin_transport(plugin):
+    profile = shipped_profile('boneng_am')
+    transport = load_transport_class('loopback').from_settings({}, profile)
+    scaling = VelocityScaling(gear_ratio=10.0, rated_speed_rpm=1330.0, pole_pairs=2)
+    drive = ModbusDrive(profile, transport, 1, scaling)
+    half_rated = 665.0 / 10.0 * 2 * math.pi / 60          # rad/s: 50 % of 1330 rpm
+    drive.apply(half_rated, run=True)
+    assert transport.registers[0xE721] == 500              # P07.33: 50.0 % at 0.1 %
+    # Run needs a rising edge on this drive: 0 then 1 on P07.32.
+    command_writes = [r[3] for r in transport.requests if r[:3] == ('write', 1, 0xE720)]
+    assert command_writes == [0, 1]
+    drive.apply(-half_rated, run=True)                     # direction by setpoint sign
+    assert transport.registers[0xE721] == words(-500)
+    assert [r[3] for r in transport.requests if r[:3] == ('write', 1, 0xE720)] == [0, 1]
+    drive.apply(half_rated, run=False)                     # idle: zero setpoint, stop
+    assert transport.registers[0xE721] == 0
+    assert transport.registers[0xE720] == profile.control.values['stop']

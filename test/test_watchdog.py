@@ -1,0 +1,97 @@
+"""Unit tests of the command watchdog with an injected clock (no sleeps)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from vfd_ros2.watchdog import CommandWatchdog
+
+
+class FakeClock:
+    def __init__(self, now: float = 1000.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+def test_expired_before_the_first_feed(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    assert watchdog.expired
+    assert not watchdog.ever_fed
+    assert watchdog.age == math.inf
+    clock.advance(1e6)
+    assert watchdog.expired
+
+
+def test_fresh_after_a_feed(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    watchdog.feed()
+    assert watchdog.ever_fed
+    assert not watchdog.expired
+    assert watchdog.age == 0.0
+    clock.advance(0.25)
+    assert watchdog.age == pytest.approx(0.25)
+    assert not watchdog.expired
+
+
+def test_expires_after_the_timeout(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    watchdog.feed()
+    clock.advance(0.5)
+    assert not watchdog.expired              # "older than the timeout": exactly 0.5 s is not
+    clock.advance(0.001)
+    assert watchdog.expired
+    assert watchdog.age == pytest.approx(0.501)
+
+
+def test_each_feed_restarts_the_timeout(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    for _ in range(10):
+        watchdog.feed()
+        clock.advance(0.4)
+        assert not watchdog.expired
+    clock.advance(0.2)
+    assert watchdog.expired
+    watchdog.feed()
+    assert not watchdog.expired
+
+
+def test_reset_forgets_all_commands(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    watchdog.feed()
+    watchdog.reset()
+    assert watchdog.expired
+    assert not watchdog.ever_fed
+    assert watchdog.age == math.inf
+    watchdog.feed()
+    assert not watchdog.expired
+
+
+def test_uses_the_injected_clock_only(clock):
+    watchdog = CommandWatchdog(30.0, clock)
+    watchdog.feed()
+    clock.advance(29.0)                      # no real time passes in this test
+    assert not watchdog.expired
+    clock.advance(2.0)
+    assert watchdog.expired
+
+
+def test_timeout_attribute():
+    assert CommandWatchdog(0.25, FakeClock()).timeout == 0.25
+
+
+@pytest.mark.parametrize('timeout', [0.0, -0.5, math.nan, math.inf, -math.inf])
+def test_invalid_timeouts_raise(timeout):
+    with pytest.raises(ValueError, match='command_timeout must be > 0'):
+        CommandWatchdog(timeout, FakeClock())
