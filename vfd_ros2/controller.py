@@ -350,6 +350,8 @@ class DriveController:
         """End of the loop: command the drive to stop, then close the link."""
         if self._online:
             try:
+                # Whatever the driver believes the drive is doing: write the stop.
+                self.drive.forget_state()
                 self.drive.apply(0.0, run=False, idle_action='stop')
             except VfdError as exc:
                 log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)

@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Protocol
+from typing import Callable, Mapping, Protocol, TypeVar
 
-from .errors import ParameterError, ProfileError, ProtocolException
+from .errors import BadFrame, ParameterError, ProfileError, ProtocolException
 from .faults import NO_FAULT, FaultInfo, describe_fault
 from .profile import Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal, SpeedUnit
 from .registers import ReadBlock, decode_words, encode_words, plan_reads
 from .scaling import VelocityScaling
 from .transports.base import RegisterTransport, Transport
+
+T = TypeVar('T')
 
 #: monitor roles that map onto DriveStatus fields, with the SI unit they carry
 MEASURED_ROLES = ('output_frequency', 'output_current', 'dc_bus_voltage', 'temperature')
@@ -162,22 +164,31 @@ class ModbusDrive:
         text = self.profile.modbus.exception_codes.get(exc.code, exc.text)
         return ProtocolException(exc.code, text, exc.request)
 
+    def _transact(self, call: Callable[[], T]) -> T:
+        """One exchange; a garbled reply is retried once at once (the line resyncs).
+
+        A timeout is not retried: it already cost a full timeout, and the next
+        cycle asks again anyway.
+        """
+        try:
+            try:
+                return call()
+            except BadFrame:
+                return call()
+        except ProtocolException as exc:
+            raise self._explained(exc) from exc
+
     def _read(self, address: int, count: int) -> list[int]:
         limit = self.profile.modbus.max_read_registers
         words: list[int] = []
-        try:
-            for offset in range(0, count, limit):
-                chunk = min(limit, count - offset)
-                words += self.transport.read_registers(self.unit_id, address + offset, chunk)
-        except ProtocolException as exc:
-            raise self._explained(exc) from exc
+        for offset in range(0, count, limit):
+            chunk = min(limit, count - offset)
+            words += self._transact(lambda a=address + offset, n=chunk:
+                                    self.transport.read_registers(self.unit_id, a, n))
         return words
 
     def _write(self, address: int, words: list[int]) -> None:
-        try:
-            self._write_words(address, words)
-        except ProtocolException as exc:
-            raise self._explained(exc) from exc
+        self._transact(lambda: self._write_words(address, words))
 
     def _write_words(self, address: int, words: list[int]) -> None:
         codes = self.profile.modbus.function_codes

@@ -1,0 +1,117 @@
+"""Surviving real-world faults: port loss, garbage, a killed driver, SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import threading
+import time
+import uuid
+
+import pytest
+import yaml
+from rclpy.node import Node
+from std_msgs.msg import Float64
+
+from harness import wait_for
+from vfd_ros2.profile import load_profile
+from vfd_ros2.sim.model import SimulatedDrive
+from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+
+
+def test_port_disappears_and_reappears(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.line.stop()                          # the USB adapter is pulled: the port vanishes
+    status = h.wait_status(lambda s: not s.online, 3.0, 'offline')
+    assert 'no valid reply' in status.stop_reason
+    h.line.start()                         # ... and plugged back (a new pty, same path)
+    status = h.wait_status(lambda s: s.online, 6.0, 'back online')
+    assert status.reconnects >= 1
+    # The new port is a power-cycled drive (fresh twin state would be a new object; here
+    # the same twin timed out meanwhile): the driver reports its comm-loss fault and does
+    # not move it again until the fault is reset.
+    status = h.wait_status(lambda s: s.fault, 5.0, 'comm-loss fault after reconnect')
+    assert status.fault_code == 35 and not h.sim.run_requested
+    assert h.trigger('reset_fault').success
+    h.wait_status(lambda s: s.running, 5.0, 'running again after the reset')
+
+
+def test_garbage_on_the_line_is_counted_and_commands_get_through(make_harness):
+    h = make_harness(node_parameters={'auto_enable': True, 'comm_loss_threshold': 3})
+    h.line.corrupt_rate = 0.1              # bad CRCs, truncated frames, wrong slave ids
+    h.stream(1.5)
+    status = h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.5) < 0.03 and
+                           s.bad_frames + s.timeouts > 5, 10.0, 'moving through garbage')
+    assert status.transactions > 50
+    assert h.line.stats.corrupted_replies > 5
+
+
+def _drive_process(tmp_path, port, namespace, extra=None):
+    parameters = {'drive.profile': 'boneng_am', 'transport.type': 'modbus_rtu',
+                  'transport.port': port, 'gear_ratio': 10.0, 'auto_enable': True,
+                  'drive_comm_timeout': 0.3}
+    parameters.update(extra or {})
+    params = tmp_path / 'drive.yaml'
+    params.write_text(yaml.safe_dump({'/**': {'ros__parameters': parameters}}))
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    return subprocess.Popen([shutil.which('drive_node'), '--ros-args', '-r',
+                             f'__ns:={namespace}', '--params-file', str(params)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+@pytest.fixture
+def commanded_drive(ros_context, tmp_path):
+    """Start a simulated drive on a pty, a drive_node process on it and a 1 rad/s commander."""
+    sim = SimulatedDrive(load_profile('boneng_am'), 1, {'acceleration_time': 0.3,
+                                                        'deceleration_time': 0.3})
+    namespace = f'/surv{uuid.uuid4().hex[:6]}'
+    commander = Node('commander', context=ros_context)
+    publisher = commander.create_publisher(Float64, f'{namespace}/drive/velocity_command', 10)
+    streaming = threading.Event()
+    streaming.set()
+
+    def stream():
+        while streaming.is_set():
+            publisher.publish(Float64(data=1.0))
+            time.sleep(0.05)
+    processes = []
+
+    def start(**extra):
+        process = _drive_process(tmp_path, str(tmp_path / 'line'), namespace, extra)
+        processes.append(process)
+        threading.Thread(target=stream, daemon=True).start()
+        wait_for(lambda: sim.speed_rpm > 90, 15.0, 'motor turning under the drive node')
+        return process
+    with SimulatedRtuLine([sim], tmp_path / 'line'):
+        yield sim, start, streaming
+        streaming.clear()
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait(5)
+    commander.destroy_node()
+
+
+def test_killed_driver_leaves_the_drive_to_its_own_timeout(commanded_drive):
+    sim, start, _ = commanded_drive
+    process = start()
+    process.kill()                         # the host driver dies without a word
+    process.wait(5)
+    wait_for(lambda: sim.fault_code == 35 and sim.fault_subcode == 3, 2.0,
+             "the drive's own comm-loss fault")
+    wait_for(lambda: sim.speed_rpm == 0.0, 3.0, 'motor stopped by the drive itself')
+
+
+def test_sigterm_stops_the_drive_before_the_port_closes(commanded_drive):
+    sim, start, streaming = commanded_drive
+    process = start(drive_comm_timeout=0.0)    # nothing but the driver can stop it
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(10) == 0
+    streaming.clear()
+    assert sim.last_command_value == 4 and not sim.run_requested   # decelerate-stop
+    assert sim.fault_code == 0
+    wait_for(lambda: sim.speed_rpm == 0.0, 3.0, 'motor ramped down')
