@@ -1,0 +1,482 @@
+"""Differential drive: kinematics, limits and odometry (pure), and the diff_drive node.
+
+The node tests run DiffDriveNode in-process against a tester node that plays
+the two drive nodes: it records the wheel commands and publishes DriveStatus
+with measured velocities, as a real drive_node would.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import uuid
+from typing import Any
+
+import pytest
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
+
+from harness import wait_for
+from vfd_ros2.diff_drive import (
+    UNKNOWN_VARIANCE,
+    DiffDriveKinematics,
+    OdometryIntegrator,
+    RateLimiter,
+    VelocityLimits,
+    normalize_angle,
+)
+from vfd_ros2.errors import ParameterError
+from vfd_ros2.msg import DriveStatus
+
+R = 0.1        # m wheel radius
+TRACK = 0.5    # m
+
+# --- kinematics -----------------------------------------------------------------
+
+
+def test_straight_line_wheel_speeds():
+    kin = DiffDriveKinematics(R, TRACK)
+    assert kin.wheel_speeds(1.0, 0.0) == pytest.approx((10.0, 10.0))
+    assert kin.wheel_speeds(-0.5, 0.0) == pytest.approx((-5.0, -5.0))
+    assert kin.body_velocity(10.0, 10.0) == pytest.approx((1.0, 0.0))
+
+
+def test_pure_rotation_wheel_speeds():
+    kin = DiffDriveKinematics(R, TRACK)
+    # Counter-clockwise (REP 103, +z up): the right wheel forward, the left backward.
+    assert kin.wheel_speeds(0.0, 1.0) == pytest.approx((-2.5, 2.5))
+    assert kin.body_velocity(-2.5, 2.5) == pytest.approx((0.0, 1.0))
+
+
+def test_arc_wheel_speeds_and_round_trip():
+    kin = DiffDriveKinematics(R, TRACK)
+    assert kin.wheel_speeds(0.5, 0.4) == pytest.approx((4.0, 6.0))
+    for linear, angular in ((0.3, -1.2), (-0.7, 0.25), (1.5, 3.0)):
+        assert kin.body_velocity(*kin.wheel_speeds(linear, angular)) == \
+            pytest.approx((linear, angular))
+
+
+@pytest.mark.parametrize('radius, track', [(0.0, 0.5), (-0.1, 0.5), (0.1, 0.0),
+                                           (math.nan, 0.5), (0.1, math.inf)])
+def test_kinematics_refuses_bad_geometry(radius, track):
+    with pytest.raises(ParameterError):
+        DiffDriveKinematics(radius, track)
+
+
+def test_limits_refuse_negative_and_treat_zero_as_none():
+    limits = VelocityLimits.from_parameters(1.0, 0.0, 2.0, 0.0, 0.0)
+    assert limits.max_linear_m_s == 1.0 and limits.max_angular_rad_s == math.inf
+    assert limits.max_wheel_rad_s == math.inf
+    with pytest.raises(ParameterError, match='max_angular_acceleration'):
+        VelocityLimits.from_parameters(1.0, 1.0, 1.0, -1.0)
+    with pytest.raises(ParameterError):
+        VelocityLimits.from_parameters(math.nan, 1.0, 1.0, 1.0)
+
+
+# --- limiter --------------------------------------------------------------------
+
+
+def curvature(linear: float, angular: float) -> float:
+    return angular / linear
+
+
+def test_speed_limits_scale_twist_and_keep_curvature():
+    kin = DiffDriveKinematics(R, TRACK)
+    limiter = RateLimiter(kin, VelocityLimits(max_linear_m_s=1.0, max_angular_rad_s=0.5))
+    linear, angular = limiter.limit_speed(2.0, 0.8)          # linear limit: factor 0.5
+    assert (linear, angular) == pytest.approx((1.0, 0.4))
+    linear, angular = limiter.limit_speed(0.5, 1.0)          # angular limit: factor 0.5
+    assert (linear, angular) == pytest.approx((0.25, 0.5))
+    assert curvature(linear, angular) == pytest.approx(2.0)
+    assert limiter.limit_speed(-2.0, 0.8) == pytest.approx((-1.0, 0.4))
+    assert limiter.limit_speed(0.3, 0.2) == (0.3, 0.2)       # inside: untouched
+
+
+def test_wheel_limit_scales_both_wheels_together():
+    kin = DiffDriveKinematics(R, TRACK)
+    limiter = RateLimiter(kin, VelocityLimits(max_wheel_rad_s=5.0))
+    linear, angular = limiter.limit_speed(0.5, 0.4)          # wheels (4, 6): right too fast
+    left, right = kin.wheel_speeds(linear, angular)
+    assert right == pytest.approx(5.0)
+    assert left == pytest.approx(4.0 * 5.0 / 6.0)            # slowed too, same ratio
+    assert curvature(linear, angular) == pytest.approx(curvature(0.5, 0.4))
+    # Pure rotation hits the limit on both wheels.
+    assert kin.wheel_speeds(*limiter.limit_speed(0.0, 4.0)) == pytest.approx((-5.0, 5.0))
+
+
+def test_acceleration_limit_over_time():
+    kin = DiffDriveKinematics(R, TRACK)
+    limiter = RateLimiter(kin, VelocityLimits(max_linear_accel_m_s2=1.0,
+                                              max_angular_accel_rad_s2=2.0))
+    dt = 0.02
+    outputs = [limiter.step(0.5, 0.0, dt)[0] for _ in range(30)]
+    for index, value in enumerate(outputs):                   # 1 m/s² * 0.02 s per step
+        assert value == pytest.approx(min(0.02 * (index + 1), 0.5))
+    assert outputs[23] < 0.5 and outputs[24] == pytest.approx(0.5)
+    # Braking obeys the same limit.
+    assert limiter.step(0.0, 0.0, 0.1)[0] == pytest.approx(0.4)
+    # No time, no change; negative time (clock jump) is no time.
+    assert limiter.step(-1.0, 1.0, 0.0) == pytest.approx((0.4, 0.0))
+    assert limiter.step(-1.0, 1.0, -0.5) == pytest.approx((0.4, 0.0))
+    limiter.reset()
+    assert (limiter.linear_m_s, limiter.angular_rad_s) == (0.0, 0.0)
+
+
+def test_acceleration_limit_from_rest_keeps_curvature():
+    kin = DiffDriveKinematics(R, TRACK)
+    limiter = RateLimiter(kin, VelocityLimits(max_linear_accel_m_s2=1.0,
+                                              max_angular_accel_rad_s2=1.0))
+    # Angular needs twice the change of linear: both are held to the angular rate.
+    for step in range(1, 50):
+        linear, angular = limiter.step(0.5, 1.0, 0.02)
+        assert curvature(linear, angular) == pytest.approx(2.0)
+        assert angular == pytest.approx(0.02 * step)
+    assert (linear, angular) == pytest.approx((0.49, 0.98))   # 49 steps of 0.02 rad/s
+
+
+# --- odometry -------------------------------------------------------------------
+
+
+def test_odometry_straight_line():
+    kin = DiffDriveKinematics(R, TRACK)
+    odom = OdometryIntegrator(kin)
+    for _ in range(100):
+        odom.update(10.0, 10.0, 0.02)                         # 1 m/s for 2 s
+    estimate = odom.estimate
+    assert (estimate.x_m, estimate.y_m, estimate.yaw_rad) == pytest.approx((2.0, 0.0, 0.0))
+    assert (estimate.linear_m_s, estimate.angular_rad_s) == pytest.approx((1.0, 0.0))
+    assert estimate.twist_valid
+
+
+def test_odometry_pure_rotation_stays_in_place_and_wraps_yaw():
+    odom = OdometryIntegrator(DiffDriveKinematics(R, TRACK))
+    for _ in range(30):
+        odom.update(-2.5, 2.5, 0.1)                           # 1 rad/s for 3 s
+    estimate = odom.estimate
+    assert (estimate.x_m, estimate.y_m) == pytest.approx((0.0, 0.0), abs=1e-12)
+    assert estimate.yaw_rad == pytest.approx(normalize_angle(3.0))
+    odom.update(-2.5, 2.5, 0.3)                               # past pi: wraps to negative
+    assert odom.estimate.yaw_rad == pytest.approx(3.3 - 2 * math.pi)
+
+
+@pytest.mark.parametrize('steps', [8, 1000])
+def test_odometry_full_circle_returns_to_start(steps):
+    kin = DiffDriveKinematics(R, TRACK)
+    odom = OdometryIntegrator(kin)
+    linear, angular = 0.5, 0.5                                # radius 1 m, counter-clockwise
+    left, right = kin.wheel_speeds(linear, angular)
+    period = 2 * math.pi / angular
+    for step in range(steps):
+        odom.update(left, right, period / steps)
+        if step == steps // 2 - 1:                            # half way: top of the circle
+            half = odom.estimate
+            assert (half.x_m, half.y_m) == pytest.approx((0.0, 2.0), abs=1e-9)
+            assert abs(half.yaw_rad) == pytest.approx(math.pi)
+    end = odom.estimate
+    # Exact arcs: even 8 coarse steps close the circle (Euler steps would not).
+    assert (end.x_m, end.y_m, end.yaw_rad) == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+
+
+def test_odometry_arc_matches_geometry():
+    kin = DiffDriveKinematics(R, TRACK)
+    odom = OdometryIntegrator(kin)
+    odom.update(*kin.wheel_speeds(1.0, 0.5), math.pi)        # radius 2 m, a quarter turn
+    estimate = odom.estimate
+    assert (estimate.x_m, estimate.y_m) == pytest.approx((2.0, 2.0), abs=1e-9)
+    assert estimate.yaw_rad == pytest.approx(math.pi / 2)
+    # Reversing while turning left: about the centre (4, 2), back down to (4, 0).
+    odom.update(*kin.wheel_speeds(-1.0, 0.5), math.pi)
+    estimate = odom.estimate
+    assert (estimate.x_m, estimate.y_m) == pytest.approx((4.0, 0.0), abs=1e-9)
+    assert abs(estimate.yaw_rad) == pytest.approx(math.pi)
+
+
+def test_odometry_hold_and_covariance():
+    odom = OdometryIntegrator(DiffDriveKinematics(R, TRACK), position_variance_per_m=0.01)
+    odom.update(10.0, 10.0, 1.0)
+    moving = odom.estimate
+    assert moving.pose_covariance[0] == pytest.approx(0.01)      # 1 m travelled
+    assert moving.pose_covariance[14] == UNKNOWN_VARIANCE        # z
+    assert moving.twist_covariance[0] < 1.0 and moving.twist_valid
+    odom.hold()
+    held = odom.estimate
+    assert (held.x_m, held.y_m, held.yaw_rad) == (moving.x_m, moving.y_m, moving.yaw_rad)
+    assert (held.linear_m_s, held.angular_rad_s, held.twist_valid) == (0.0, 0.0, False)
+    assert held.twist_covariance[0] == UNKNOWN_VARIANCE
+    assert held.twist_covariance[35] == UNKNOWN_VARIANCE
+    odom.update(10.0, 10.0, 1.0)
+    assert odom.estimate.pose_covariance[0] == pytest.approx(0.02)
+    assert len(odom.estimate.pose_covariance) == 36
+
+
+# --- the node -------------------------------------------------------------------
+
+
+class FakeWheel:
+    """What one drive node looks like from outside: commands in, status out."""
+
+    def __init__(self, tester: Node, prefix: str) -> None:
+        self.commands: list[float] = []
+        self.measured = 0.0
+        self.online = True
+        self.publishing = True
+        tester.create_subscription(Float64, f'{prefix}/drive/velocity_command',
+                                   lambda msg: self.commands.append(msg.data), 50)
+        self.status_pub = tester.create_publisher(DriveStatus, f'{prefix}/drive/status', 10)
+
+    def publish_status(self, stamp: Any) -> None:
+        if self.publishing:
+            status = DriveStatus(online=self.online, measured_velocity=self.measured)
+            status.header.stamp = stamp
+            self.status_pub.publish(status)
+
+
+class DiffDriveRig:
+    """DiffDriveNode + a tester (fake drives, cmd_vel, odom) spinning in a thread."""
+
+    def __init__(self, context: Any, parameters: dict[str, Any] | None = None) -> None:
+        from vfd_ros2.diff_drive_node import DiffDriveNode
+        self.context = context
+        self.namespace = f'/t{uuid.uuid4().hex[:8]}'
+        ns = self.namespace
+        values = {
+            'wheel_radius': R, 'track_width': TRACK,
+            'left_wheel_command_topic': f'{ns}/left_wheel/drive/velocity_command',
+            'right_wheel_command_topic': f'{ns}/right_wheel/drive/velocity_command',
+            'left_wheel_status_topic': f'{ns}/left_wheel/drive/status',
+            'right_wheel_status_topic': f'{ns}/right_wheel/drive/status',
+            'max_linear_acceleration': 0.0, 'max_angular_acceleration': 0.0,
+            'max_linear_velocity': 2.0, 'max_angular_velocity': 4.0,
+        }
+        values.update(parameters or {})
+        self.node = DiffDriveNode('diff_drive', namespace=ns, context=context,
+                                  parameter_overrides=[Parameter(k, value=v)
+                                                       for k, v in values.items()])
+        self.tester = Node('tester', namespace=ns, context=context)
+        self.left = FakeWheel(self.tester, f'{ns}/left_wheel')
+        self.right = FakeWheel(self.tester, f'{ns}/right_wheel')
+        self.odom: list[Odometry] = []
+        self.tester.create_subscription(Odometry, f'{ns}/odom', self.odom.append, 100)
+        self.cmd_pub = self.tester.create_publisher(Twist, f'{ns}/cmd_vel', 10)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.tester)
+        self._running = threading.Event()
+        self._running.set()
+        self.twist: tuple[float, float] | None = None
+        self._threads = [threading.Thread(target=self._spin, daemon=True),
+                         threading.Thread(target=self._feed, daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def _spin(self) -> None:
+        while self._running.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def _feed(self) -> None:
+        """Drive statuses at 50 Hz (like status_rate) and cmd_vel at 20 Hz while set."""
+        tick = 0
+        while self._running.is_set() and self.context.ok():
+            stamp = self.tester.get_clock().now().to_msg()
+            self.left.publish_status(stamp)
+            self.right.publish_status(stamp)
+            if self.twist is not None and tick % 2 == 0:
+                self.send(*self.twist)
+            tick += 1
+            time.sleep(0.02)
+
+    def send(self, linear: float, angular: float) -> None:
+        msg = Twist()
+        msg.linear.x, msg.angular.z = linear, angular
+        self.cmd_pub.publish(msg)
+
+    def wait_commands(self, left: float, right: float, timeout: float = 3.0,
+                      what: str = 'wheel commands') -> None:
+        def reached():
+            return self.left.commands and self.right.commands and \
+                self.left.commands[-1] == pytest.approx(left, abs=1e-9) and \
+                self.right.commands[-1] == pytest.approx(right, abs=1e-9)
+        wait_for(reached, timeout, f'{what} ({left}, {right})')
+
+    def close(self) -> None:
+        self._running.clear()
+        for thread in self._threads:
+            thread.join(2.0)
+        self.executor.remove_node(self.node)
+        self.node.destroy_node()
+        self.tester.destroy_node()
+        self.executor.shutdown(timeout_sec=1.0)
+
+
+@pytest.fixture
+def make_rig(ros_context):
+    rigs: list[DiffDriveRig] = []
+
+    def make(**parameters: Any) -> DiffDriveRig:
+        rig = DiffDriveRig(ros_context, parameters)
+        rigs.append(rig)
+        return rig
+    yield make
+    for rig in rigs:
+        rig.close()
+
+
+def test_cmd_vel_to_wheel_commands_and_timeout_to_zero(make_rig):
+    rig = make_rig()
+    rig.wait_commands(0.0, 0.0, what='zeros before any cmd_vel')
+    rig.twist = (0.5, 0.4)
+    rig.wait_commands(4.0, 6.0, what='arc')
+    rig.twist = (0.0, 1.0)
+    rig.wait_commands(-2.5, 2.5, what='turn on the spot')
+    rig.twist = (3.0, 0.0)                                    # above max_linear_velocity 2
+    rig.wait_commands(20.0, 20.0, what='clamped straight line')
+    # Commands stop: zeros after cmd_vel_timeout (0.5 s), and they keep coming.
+    rig.twist = None
+    stopped = time.monotonic()
+    rig.wait_commands(0.0, 0.0, 2.0, 'zeros after the timeout')
+    elapsed = time.monotonic() - stopped
+    assert 0.35 < elapsed < 1.0, elapsed
+    count = len(rig.left.commands)
+    wait_for(lambda: len(rig.left.commands) > count + 10, 2.0, 'zeros keep flowing')
+    assert set(rig.left.commands[count:]) == {0.0}
+    assert set(rig.right.commands[count:]) == {0.0}
+
+
+def test_inversion_applies_to_commands_and_measurements(make_rig):
+    rig = make_rig(invert_right=True)
+    rig.twist = (0.5, 0.4)
+    rig.wait_commands(4.0, -6.0, what='right wheel inverted')
+    # A drive that follows: it reports its command as measured (right: inverted again).
+    rig.left.measured, rig.right.measured = 4.0, -6.0
+    odom = wait_for(lambda: rig.odom and rig.odom[-1].twist.twist.linear.x > 0.1 and
+                    rig.odom[-1], 3.0, 'odom twist')
+    assert odom.twist.twist.linear.x == pytest.approx(0.5)
+    assert odom.twist.twist.angular.z == pytest.approx(0.4)
+
+
+def test_acceleration_limit_ramps_wheel_commands(make_rig):
+    rig = make_rig(max_linear_acceleration=1.0, publish_rate=50.0)
+    rig.wait_commands(0.0, 0.0)
+    count = len(rig.left.commands)
+    rig.twist = (0.5, 0.0)
+    start = time.monotonic()
+    rig.wait_commands(5.0, 5.0, 3.0, 'ramp to 0.5 m/s')
+    elapsed = time.monotonic() - start
+    ramp = [value for value in rig.left.commands[count:] if 0.0 < value < 5.0]
+    assert elapsed > 0.4                                      # 0.5 m/s at 1 m/s² = 0.5 s
+    assert len(ramp) >= 15
+    assert ramp == sorted(ramp)
+    steps = [b - a for a, b in zip(ramp, ramp[1:])]
+    assert max(steps) <= 1.0 * 5 * 0.02 / R + 1e-9           # <= 5 periods' worth
+
+
+def test_nan_and_inf_cmd_vel_rejected_and_do_not_feed_timeout(make_rig):
+    rig = make_rig()
+    rig.twist = (0.5, 0.0)
+    rig.wait_commands(5.0, 5.0)
+    rig.twist = (math.nan, 0.0)
+    rig.wait_commands(0.0, 0.0, 2.0, 'zeros despite a NaN stream')
+    assert rig.node.rejected_commands > 3
+    before = rig.node.rejected_commands
+    rig.twist = (0.2, math.inf)
+    wait_for(lambda: rig.node.rejected_commands > before + 3, 2.0, 'inf rejected')
+    assert rig.left.commands[-1] == 0.0 and rig.right.commands[-1] == 0.0
+    rig.twist = (0.2, 0.0)                                    # valid again: moves again
+    rig.wait_commands(2.0, 2.0)
+
+
+def test_odometry_integrates_measured_speeds_in_rep105_frames(make_rig):
+    rig = make_rig()
+    # The drives report 3 rad/s (0.3 m/s) whatever is commanded: odom must follow them.
+    rig.twist = (0.5, 0.0)
+    wait_for(lambda: rig.odom and rig.odom[-1].twist.covariance[0] < 1.0, 3.0,
+             'odom with valid twist')
+    assert rig.odom[-1].pose.pose.position.x == 0.0
+    start = time.monotonic()
+    rig.left.measured = rig.right.measured = 3.0
+    wait_for(lambda: time.monotonic() - start > 1.0, 2.0, '1 s of driving')
+    rig.left.measured = rig.right.measured = 0.0
+    driven = time.monotonic() - start
+    wait_for(lambda: rig.odom[-1].twist.twist.linear.x == 0.0, 2.0, 'stopped')
+    final = rig.odom[-1]
+    assert final.pose.pose.position.x == pytest.approx(0.3 * driven, abs=0.03)
+    assert final.pose.pose.position.y == pytest.approx(0.0, abs=1e-9)
+    assert final.pose.pose.orientation.w == pytest.approx(1.0)
+    # Message to message, the pose advances by v * (stamp difference).
+    moving = [m for m in rig.odom if m.twist.twist.linear.x == pytest.approx(0.3)]
+    assert len(moving) > 20
+    for a, b in zip(moving[5:], moving[6:]):
+        dt = (b.header.stamp.sec - a.header.stamp.sec) + \
+            (b.header.stamp.nanosec - a.header.stamp.nanosec) * 1e-9
+        assert b.pose.pose.position.x - a.pose.pose.position.x == \
+            pytest.approx(0.3 * dt, abs=1e-6)
+    assert final.header.frame_id == 'odom' and final.child_frame_id == 'base_link'
+    assert final.pose.covariance[0] > 0.0
+
+
+def test_odometry_turns_counter_clockwise_for_positive_yaw_rate(make_rig):
+    rig = make_rig(odom_frame='map_odom', base_frame='robot_base')
+    wait_for(lambda: rig.odom and rig.odom[-1].twist.covariance[0] < 1.0, 3.0, 'valid odom')
+    rig.left.measured, rig.right.measured = -2.5, 2.5              # 1 rad/s on the spot
+    wait_for(lambda: rig.odom[-1].pose.pose.orientation.z > math.sin(0.25), 3.0,
+             'yaw past 0.5 rad')
+    odom = rig.odom[-1]
+    assert odom.twist.twist.angular.z == pytest.approx(1.0)
+    assert odom.pose.pose.position.x == pytest.approx(0.0, abs=1e-9)
+    assert (odom.header.frame_id, odom.child_frame_id) == ('map_odom', 'robot_base')
+
+
+def test_stale_or_offline_wheel_holds_pose_with_unknown_twist(make_rig):
+    rig = make_rig()
+    rig.left.measured = rig.right.measured = 2.0
+    wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.position.x > 0.05, 3.0, 'moving')
+    rig.right.publishing = False                              # right drive's status stops
+    held = wait_for(lambda: rig.odom[-1].twist.covariance[0] == UNKNOWN_VARIANCE and
+                    rig.odom[-1], 2.0, 'twist unknown after wheel_status_timeout')
+    assert held.twist.twist.linear.x == 0.0 and held.twist.covariance[35] == UNKNOWN_VARIANCE
+    count = len(rig.odom)
+    wait_for(lambda: len(rig.odom) > count + 10, 2.0, 'more odom')
+    assert {m.pose.pose.position.x for m in rig.odom[count:]} == {held.pose.pose.position.x}
+    rig.right.publishing = True
+    wait_for(lambda: rig.odom[-1].twist.twist.linear.x == pytest.approx(0.2), 2.0, 'recovered')
+    rig.left.online = False                                   # left drive reports offline
+    wait_for(lambda: rig.odom[-1].twist.covariance[0] == UNKNOWN_VARIANCE, 2.0,
+             'held while offline')
+    rig.left.online = True
+    rig.left.measured = math.nan                              # drive has no measurement
+    rig.left.online = True
+    wait_for(lambda: rig.odom[-1].twist.covariance[0] == UNKNOWN_VARIANCE, 2.0, 'held on NaN')
+
+
+def test_publish_tf(make_rig, ros_context):
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        TFMessage = None
+    rig = make_rig(publish_tf=True, base_frame='base_footprint')
+    wait_for(lambda: rig.odom, 3.0, 'odom published with publish_tf')
+    if TFMessage is None:
+        # Not installed here: the node says so and runs without TF.
+        assert rig.node.tf_pub is None
+        return
+    received: list[Any] = []
+    rig.tester.create_subscription(TFMessage, '/tf', received.append, 100)
+    transform = wait_for(lambda: next((t for m in list(received) for t in m.transforms
+                                       if t.child_frame_id == 'base_footprint'), None),
+                         3.0, 'odom -> base_footprint on /tf')
+    assert transform.header.frame_id == 'odom'
+
+
+def test_bad_parameters_are_refused(ros_context):
+    from vfd_ros2.diff_drive_node import DiffDriveNode
+    for name, value in (('wheel_radius', 0.0), ('cmd_vel_timeout', -1.0),
+                        ('max_linear_velocity', -1.0), ('publish_rate', 0.0)):
+        with pytest.raises(ParameterError, match=name):
+            DiffDriveNode('diff_drive', namespace=f'/t{uuid.uuid4().hex[:8]}',
+                          context=ros_context,
+                          parameter_overrides=[Parameter(name, value=value)])

@@ -1,0 +1,284 @@
+"""diff_drive: cmd_vel -> two wheel drive nodes, measured wheel speeds -> odom.
+
+Topics (relative names resolve in the node's namespace):
+  cmd_vel                  geometry_msgs/Twist     in: m/s (linear.x), rad/s (angular.z)
+  <left/right>_wheel_command_topic   std_msgs/Float64   out at publish_rate: rad/s at the wheel
+  <left/right>_wheel_status_topic    vfd_ros2/DriveStatus  in: measured_velocity, online
+  odom                     nav_msgs/Odometry       out at publish_rate: header.frame_id =
+                                                   odom_frame, child_frame_id = base_frame
+  /tf                      tf2_msgs/TFMessage      out with publish_tf (needs tf2_msgs)
+
+Frames and units follow REP 103/105: the pose of base_frame in odom_frame, the
+twist in base_frame, metres, radians, seconds.
+
+Command timeout: without a valid cmd_vel for cmd_vel_timeout the target twist
+becomes zero (ramped down within the acceleration limits, as ros2_controllers'
+diff_drive_controller does) and zero wheel commands keep being published. The
+drive nodes are fed on purpose: they hold zero speed, enabled and ready, instead
+of tripping their own watchdog (which would need nothing to restart, but makes
+each drive report watchdog_tripped). Their watchdogs still stop the wheels if
+this node dies or its link breaks.
+
+Odometry uses the MEASURED wheel speeds (DriveStatus.measured_velocity), never
+the commands. While a wheel's status is older than wheel_status_timeout, offline
+or NaN, the pose is held and the twist is reported as zero with a large
+covariance.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import rclpy
+from geometry_msgs.msg import TransformStamped, Twist
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.time import Time
+from std_msgs.msg import Float64
+
+from vfd_ros2.msg import DriveStatus
+
+from .diff_drive import DiffDriveKinematics, OdometryIntegrator, RateLimiter, VelocityLimits
+from .errors import ParameterError, VfdError
+
+PARAMETERS: tuple[tuple[str, Any, str], ...] = (
+    ('wheel_radius', 0.1, 'm, rolling radius of the drive wheels (> 0)'),
+    ('track_width', 0.5, 'm between the wheel contact points (> 0)'),
+    ('left_wheel_command_topic', '/agv/left_wheel/drive/velocity_command',
+     'std_msgs/Float64 out: left wheel rad/s'),
+    ('right_wheel_command_topic', '/agv/right_wheel/drive/velocity_command',
+     'std_msgs/Float64 out: right wheel rad/s'),
+    ('left_wheel_status_topic', '/agv/left_wheel/drive/status',
+     'vfd_ros2/DriveStatus in: left wheel measured_velocity'),
+    ('right_wheel_status_topic', '/agv/right_wheel/drive/status',
+     'vfd_ros2/DriveStatus in: right wheel measured_velocity'),
+    ('invert_left', False, 'negate the left wheel command and measurement (normally false: '
+     'the drive nodes handle mirrored mounting with invert_direction)'),
+    ('invert_right', False, 'negate the right wheel command and measurement'),
+    ('max_linear_velocity', 1.0, 'm/s; 0 = no limit'),
+    ('max_angular_velocity', 2.0, 'rad/s; 0 = no limit'),
+    ('max_linear_acceleration', 1.0, 'm/s^2, also when braking; 0 = no limit'),
+    ('max_angular_acceleration', 3.0, 'rad/s^2, also when braking; 0 = no limit'),
+    ('max_wheel_velocity', 0.0, 'rad/s per wheel, both wheels scaled together (set it to the '
+     "drive nodes' max_velocity); 0 = no limit"),
+    ('cmd_vel_timeout', 0.5, 's without a valid cmd_vel before the target becomes zero '
+     '(zero wheel commands keep being published)'),
+    ('wheel_status_timeout', 0.5, 's after the last wheel status before odometry holds'),
+    ('publish_rate', 50.0, 'Hz of the wheel commands and odom'),
+    ('odom_frame', 'odom', 'header.frame_id of odom (REP 105)'),
+    ('base_frame', 'base_link', 'child_frame_id of odom (REP 105)'),
+    ('publish_tf', False, 'also publish odom_frame -> base_frame on /tf (needs tf2_msgs)'),
+)
+
+
+class WheelInput:
+    """The latest measured speed of one wheel, and when it arrived."""
+
+    def __init__(self, name: str, invert: bool) -> None:
+        self.name = name
+        self.sign = -1.0 if invert else 1.0
+        self.velocity_rad_s = math.nan
+        self.online = False
+        self.received: Time | None = None
+
+    def update(self, msg: DriveStatus, now: Time) -> None:
+        self.velocity_rad_s = self.sign * float(msg.measured_velocity)
+        self.online = bool(msg.online)
+        self.received = now
+
+    def problem(self, now: Time, timeout_s: float) -> str:
+        """Return why this wheel's speed cannot be used ('' if it can)."""
+        if self.received is None:
+            return f'no status from the {self.name} wheel yet'
+        age = (now - self.received).nanoseconds * 1e-9
+        if age > timeout_s:
+            return f'{self.name} wheel status is {age:.2f} s old'
+        if not self.online:
+            return f'{self.name} wheel drive is offline'
+        if not math.isfinite(self.velocity_rad_s):
+            return f'{self.name} wheel measured_velocity is not a number'
+        return ''
+
+
+class DiffDriveNode(Node):
+    """cmd_vel -> wheel commands (limited), measured wheel speeds -> odometry."""
+
+    def __init__(self, node_name: str = 'diff_drive', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        values = {name: self.declare_parameter(
+            name, default, ParameterDescriptor(description=description, read_only=True)).value
+            for name, default, description in PARAMETERS}
+        self.kinematics = DiffDriveKinematics(values['wheel_radius'], values['track_width'])
+        self.limiter = RateLimiter(self.kinematics, VelocityLimits.from_parameters(
+            values['max_linear_velocity'], values['max_angular_velocity'],
+            values['max_linear_acceleration'], values['max_angular_acceleration'],
+            values['max_wheel_velocity']))
+        self.odometry = OdometryIntegrator(self.kinematics)
+        for name in ('cmd_vel_timeout', 'wheel_status_timeout', 'publish_rate'):
+            value = float(values[name])
+            if not math.isfinite(value) or value <= 0.0:
+                raise ParameterError(f'{name} must be a finite number > 0, got {value}')
+        self.cmd_vel_timeout_s = float(values['cmd_vel_timeout'])
+        self.wheel_status_timeout_s = float(values['wheel_status_timeout'])
+        self.period_s = 1.0 / float(values['publish_rate'])
+        self.odom_frame = str(values['odom_frame'])
+        self.base_frame = str(values['base_frame'])
+        self.left = WheelInput('left', bool(values['invert_left']))
+        self.right = WheelInput('right', bool(values['invert_right']))
+
+        self.rejected_commands = 0
+        self.target: tuple[float, float] = (0.0, 0.0)
+        self.last_command: Time | None = None
+        self.timed_out = True
+        self._last_tick: Time | None = None
+
+        self.left_pub = self.create_publisher(Float64, values['left_wheel_command_topic'], 10)
+        self.right_pub = self.create_publisher(Float64, values['right_wheel_command_topic'], 10)
+        self.odom_pub = self.create_publisher(Odometry, 'odom', 10)
+        self.tf_pub = None
+        self._tf_message_type = None
+        if values['publish_tf']:
+            self._setup_tf()
+        self.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, 10)
+        self.create_subscription(DriveStatus, values['left_wheel_status_topic'],
+                                 lambda msg: self._on_status(self.left, msg), 10)
+        self.create_subscription(DriveStatus, values['right_wheel_status_topic'],
+                                 lambda msg: self._on_status(self.right, msg), 10)
+        self.create_timer(self.period_s, self._on_tick)
+        self.get_logger().info(
+            f'diff drive: r={self.kinematics.wheel_radius_m} m, '
+            f'track={self.kinematics.track_width_m} m, wheels '
+            f"{values['left_wheel_command_topic']} / {values['right_wheel_command_topic']}")
+
+    def _setup_tf(self) -> None:
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            self.get_logger().error(
+                'publish_tf is true but tf2_msgs is not installed (ros-jazzy-tf2-msgs): '
+                'no TF is published; odom is. Install tf2_msgs or publish '
+                f'{self.odom_frame} -> {self.base_frame} elsewhere (e.g. robot_localization).')
+            return
+        self._tf_message_type = TFMessage
+        self.tf_pub = self.create_publisher(TFMessage, '/tf', 100)
+
+    # --- inputs -----------------------------------------------------------------
+
+    def _on_cmd_vel(self, msg: Twist) -> None:
+        try:
+            fields = (msg.linear.x, msg.linear.y, msg.linear.z,
+                      msg.angular.x, msg.angular.y, msg.angular.z)
+            if not all(math.isfinite(value) for value in fields):
+                self.rejected_commands += 1
+                self.get_logger().warning(
+                    f'rejected cmd_vel with a non-finite field (linear.x={msg.linear.x}, '
+                    f'angular.z={msg.angular.z}); {self.rejected_commands} rejected so far',
+                    throttle_duration_sec=1.0)
+                return
+            self.target = (float(msg.linear.x), float(msg.angular.z))
+            self.last_command = self.get_clock().now()
+        except Exception as exc:  # noqa: BLE001 - never raise into the executor
+            self.get_logger().error(f'cmd_vel failed: {exc}', throttle_duration_sec=1.0)
+
+    def _on_status(self, wheel: WheelInput, msg: DriveStatus) -> None:
+        try:
+            wheel.update(msg, self.get_clock().now())
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f'{wheel.name} wheel status failed: {exc}',
+                                    throttle_duration_sec=1.0)
+
+    # --- the cycle --------------------------------------------------------------
+
+    def _on_tick(self) -> None:
+        try:
+            now = self.get_clock().now()
+            dt = self._elapsed(now)
+            self._command(now, dt)
+            self._integrate(now, dt)
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f'diff drive cycle failed: {exc}', throttle_duration_sec=1.0)
+
+    def _elapsed(self, now: Time) -> float:
+        """Return s since the last cycle; 0 on the first one or after a clock jump back.
+
+        A stalled executor is capped at 5 periods, so one late cycle cannot
+        permit a jump in speed larger than the acceleration limits over 5 periods.
+        """
+        last, self._last_tick = self._last_tick, now
+        if last is None:
+            return 0.0
+        dt = (now - last).nanoseconds * 1e-9
+        return min(dt, 5.0 * self.period_s) if dt > 0.0 else 0.0
+
+    def _command(self, now: Time, dt: float) -> None:
+        fresh = self.last_command is not None and \
+            (now - self.last_command).nanoseconds * 1e-9 <= self.cmd_vel_timeout_s
+        if not fresh and not self.timed_out and self.last_command is not None:
+            self.get_logger().warning(
+                f'no valid cmd_vel for {self.cmd_vel_timeout_s} s: stopping the wheels')
+        self.timed_out = not fresh
+        target = self.target if fresh else (0.0, 0.0)
+        linear, angular = self.limiter.step(target[0], target[1], dt)
+        left, right = self.kinematics.wheel_speeds(linear, angular)
+        self.left_pub.publish(Float64(data=self.left.sign * left))
+        self.right_pub.publish(Float64(data=self.right.sign * right))
+
+    def _integrate(self, now: Time, dt: float) -> None:
+        problem = self.left.problem(now, self.wheel_status_timeout_s) or \
+            self.right.problem(now, self.wheel_status_timeout_s)
+        if problem:
+            self.odometry.hold()
+            self.get_logger().warning(f'odometry holds its pose: {problem}',
+                                      throttle_duration_sec=2.0)
+        else:
+            self.odometry.update(self.left.velocity_rad_s, self.right.velocity_rad_s, dt)
+        self._publish_odometry(now)
+
+    def _publish_odometry(self, now: Time) -> None:
+        estimate = self.odometry.estimate
+        stamp = now.to_msg()
+        msg = Odometry()
+        msg.header.stamp = stamp
+        msg.header.frame_id = self.odom_frame
+        msg.child_frame_id = self.base_frame
+        pose = msg.pose.pose
+        pose.position.x, pose.position.y = estimate.x_m, estimate.y_m
+        pose.orientation.z = math.sin(0.5 * estimate.yaw_rad)
+        pose.orientation.w = math.cos(0.5 * estimate.yaw_rad)
+        msg.pose.covariance = list(estimate.pose_covariance)
+        msg.twist.twist.linear.x = estimate.linear_m_s
+        msg.twist.twist.angular.z = estimate.angular_rad_s
+        msg.twist.covariance = list(estimate.twist_covariance)
+        self.odom_pub.publish(msg)
+        if self.tf_pub is not None:
+            transform = TransformStamped()
+            transform.header = msg.header
+            transform.child_frame_id = self.base_frame
+            transform.transform.translation.x = pose.position.x
+            transform.transform.translation.y = pose.position.y
+            transform.transform.rotation = pose.orientation
+            self.tf_pub.publish(self._tf_message_type(transforms=[transform]))
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = DiffDriveNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (VfdError, ParameterException) as exc:
+        print(f'diff_drive: {exc}')
+        return 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
