@@ -1,22 +1,27 @@
-"""A simulated two-wheel AGV: simulated BONENG AM drives, drive nodes and the demo profile.
+"""Launch the simulated AGV: two drives on ONE simulated RS-485 line and diff_drive.
 
-    ros2 launch vfd_ros2 sim_agv.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/sim_agv]
+One bus_node serves a drive node per wheel; diff_drive turns cmd_vel into wheel
+commands and the measured wheel speeds into odom.
 
-The node list comes from vfd_ros2.bringup.sim_agv (unit-tested); this file only
-turns it into launch actions.
+    ros2 launch vfd_ros2 sim_agv.launch.py [directory:=/tmp/vfd_ros2/sim_agv]
+    ros2 topic pub -r 20 /agv/cmd_vel geometry_msgs/msg/Twist "{linear: {x: 0.3}}"
+    ros2 param set /agv/sim_drive silent_unit_ids "[2]"     # pull the right drive off the line
+
+The node list and the bus file come from vfd_ros2.bringup (unit-tested); this
+file only turns them into launch actions.
 """
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from vfd_ros2.bringup import DEFAULT_SIM_DIR, sim_agv
+from vfd_ros2.bringup import DEFAULT_SIM_DIR, sim_agv, sim_agv_bus, write_bus_file
 
 
 def _nodes(context):
     directory = LaunchConfiguration('directory').perform(context)
+    write_bus_file(sim_agv_bus(directory), directory)
     return [Node(package='vfd_ros2', executable=spec.executable, name=spec.name,
                  namespace=spec.namespace, parameters=[spec.parameters], output='screen')
             for spec in sim_agv(directory=directory)]
@@ -25,10 +30,6 @@ def _nodes(context):
 def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument('directory', default_value=DEFAULT_SIM_DIR,
-                              description='where the emulated serial ports are created'),
-        DeclareLaunchArgument('run_demo', default_value='true',
-                              description='also run the demo velocity profile'),
+                              description='where the emulated serial line and bus file go'),
         OpaqueFunction(function=_nodes),
-        Node(package='vfd_ros2', executable='demo', arguments=['--attach'], output='screen',
-             condition=IfCondition(LaunchConfiguration('run_demo'))),
     ])

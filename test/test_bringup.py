@@ -10,15 +10,23 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vfd_ros2.bringup import DEFAULT_SIM_DIR, NodeSpec, drive_spec, sim_agv
+from vfd_ros2.bringup import (
+    DEFAULT_SIM_DIR,
+    NodeSpec,
+    drive_spec,
+    sim_agv,
+    sim_agv_bus,
+    sim_wheels,
+)
+from vfd_ros2.bus import parse_bus_config
 from vfd_ros2.config import SETTINGS
 from vfd_ros2.sim.node import parse_initial_values
 
 LAUNCH_DIR = Path(__file__).resolve().parents[1] / 'launch'
 
 
-def test_sim_agv_pairs_a_simulator_with_a_driver_per_wheel(tmp_path):
-    specs = sim_agv(directory=str(tmp_path))
+def test_sim_wheels_pairs_a_simulator_with_a_driver_per_wheel(tmp_path):
+    specs = sim_wheels(directory=str(tmp_path))
     assert [s.executable for s in specs] == ['sim_drive', 'drive_node'] * 2
     sims, drivers = specs[0::2], specs[1::2]
     for sim, driver in zip(sims, drivers):
@@ -36,7 +44,7 @@ def test_sim_agv_pairs_a_simulator_with_a_driver_per_wheel(tmp_path):
 def test_sim_initial_values_are_valid_for_the_profile():
     from vfd_ros2.profile import load_profile
     profile = load_profile('boneng_am')
-    for spec in sim_agv()[0::2]:
+    for spec in sim_wheels()[0::2]:
         for code, value in parse_initial_values(spec.parameters['initial_values']).items():
             assert profile.parameter(code).to_raw(value) >= 0
 
@@ -97,13 +105,13 @@ def _load_launch_file(name):
     return module
 
 
-def test_sim_agv_launch_file_builds_the_bringup_nodes(monkeypatch):
+def test_demo_launch_file_builds_the_bringup_nodes(monkeypatch):
     Action = _fake_launch_modules(monkeypatch)
-    module = _load_launch_file('sim_agv.launch.py')
+    module = _load_launch_file('demo.launch.py')
     actions = module.generate_launch_description()
     opaque = next(a for a in actions if a.kwargs.get('function'))
     nodes = opaque.kwargs['function']({'directory': '/tmp/x'})
-    expected = sim_agv(directory='/tmp/x')
+    expected = sim_wheels(directory='/tmp/x')
     assert [(n.kwargs['executable'], n.kwargs['namespace'], n.kwargs['parameters'])
             for n in nodes] == [(s.executable, s.namespace, [s.parameters]) for s in expected]
     demo = [a for a in actions if isinstance(a, Action) and a.kwargs.get('executable') == 'demo']
@@ -133,3 +141,35 @@ def test_example_configs_build_a_controller(path):
     assert set(values) <= known, set(values) - known
     controller = build_controller(values)
     assert controller.drive.profile.name == values['drive.profile']
+
+
+def test_sim_agv_puts_both_drives_on_one_line_behind_one_bus_node(tmp_path):
+    specs = {spec.executable: spec for spec in sim_agv(directory=str(tmp_path))}
+    assert set(specs) == {'sim_drive', 'bus_node', 'diff_drive'}
+    bus = parse_bus_config(sim_agv_bus(str(tmp_path)))
+    assert specs['sim_drive'].parameters['port'] == bus.settings['transport.port']
+    assert specs['sim_drive'].parameters['unit_ids'] == [
+        d.settings['transport.unit_id'] for d in bus.drives]
+    assert specs['bus_node'].parameters['config_file'] == str(tmp_path / 'bus.yaml')
+    diff = specs['diff_drive'].parameters
+    namespaces = [d.namespace for d in bus.drives]
+    assert diff['left_wheel_command_topic'] == f'{namespaces[0]}/drive/velocity_command'
+    assert diff['right_wheel_status_topic'] == f'{namespaces[1]}/drive/status'
+    assert [d.settings['invert_direction'] for d in bus.drives] == [False, True]
+
+
+def test_sim_agv_launch_file_writes_the_bus_file(monkeypatch, tmp_path):
+    _fake_launch_modules(monkeypatch)
+    actions = _load_launch_file('sim_agv.launch.py').generate_launch_description()
+    opaque = next(a for a in actions if a.kwargs.get('function'))
+    nodes = opaque.kwargs['function']({'directory': str(tmp_path)})
+    assert [n.kwargs['executable'] for n in nodes] == ['sim_drive', 'bus_node', 'diff_drive']
+    written = parse_bus_config(yaml.safe_load((tmp_path / 'bus.yaml').read_text()))
+    assert written == parse_bus_config(sim_agv_bus(str(tmp_path)))
+
+
+def test_bus_launch_file(monkeypatch):
+    _fake_launch_modules(monkeypatch)
+    actions = _load_launch_file('bus.launch.py').generate_launch_description()
+    node = next(a for a in actions if a.kwargs.get('executable') == 'bus_node')
+    assert node.kwargs['parameters'][0]['config_file'].args == ('config_file',)

@@ -25,3 +25,16 @@ def test_demo_refuses_to_run_without_loopback_discovery():
     result = subprocess.run([shutil.which('demo'), '--attach'], env=env, capture_output=True,
                             text=True, timeout=30)
     assert result.returncode == 2 and 'LOCALHOST' in result.stdout
+
+
+def test_agv_demo_cmd_vel_moves_both_wheels_on_one_line_and_survives_an_unplug():
+    """Issue 5's done-when, without ros2 launch: bus_node + diff_drive on one RS-485 line."""
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    result = subprocess.run([shutil.which('demo'), '--agv'], env=env, capture_output=True,
+                            text=True, timeout=90)
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    assert '-- right drive pulled off the line' in output
+    assert 'offline' in output                       # the right drive, while unplugged
+    assert 'reset_fault right_wheel: fault E35.03' in output
+    assert 'both wheels followed the profile' in output

@@ -25,7 +25,8 @@ def ruff_command() -> list[str]:
 
 def test_ruff_check():
     result = subprocess.run(
-        [*ruff_command(), 'check', '--no-cache', '--output-format', 'full', 'vfd_ros2', 'test'],
+        [*ruff_command(), 'check', '--no-cache', '--output-format', 'full', 'vfd_ros2', 'test',
+         'launch'],
         cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert (ROOT / 'ruff.toml').exists()
     assert result.returncode == 0, f'ruff check failed:\n{result.stdout}\n{result.stderr}'

@@ -56,10 +56,10 @@ def drive_spec(namespace: str, parameters: dict[str, Any], name: str = 'drive') 
     return NodeSpec('drive_node', name, namespace, dict(parameters))
 
 
-def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
-            wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
-            gear_ratio: float = 10.0, ramp_time: float = 1.0) -> list[NodeSpec]:
-    """Describe a simulated AGV: per wheel, a simulated drive on its own pty line and its driver.
+def sim_wheels(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
+               wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
+               gear_ratio: float = 10.0, ramp_time: float = 1.0) -> list[NodeSpec]:
+    """Per wheel, a simulated drive on its own pty line and its own drive_node.
 
     The right wheel is mounted mirrored, so its driver inverts the direction:
     both wheels then turn "forward" for a positive command (REP 103).
@@ -80,13 +80,70 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             'transport.type': 'modbus_rtu',
             'transport.port': port,
             'transport.unit_id': 1,
-            'gear_ratio': gear_ratio,
-            'invert_direction': index % 2 == 1,
-            'max_velocity': 5.0,
-            'command_timeout': 0.5,
-            # The drives' own comm-loss timeout: 1 s tolerates a loaded 2-core machine
-            # running simulators and drivers side by side (0.3 s on a real robot).
-            'drive_comm_timeout': 1.0,
-            'frame_id': f'{wheel}_link',
+            **_wheel_settings(wheel, index, gear_ratio),
         }))
     return specs
+
+
+def _wheel_settings(wheel: str, index: int, gear_ratio: float) -> dict[str, Any]:
+    return {
+        'gear_ratio': gear_ratio,
+        'invert_direction': index % 2 == 1,
+        'max_velocity': 5.0,
+        'command_timeout': 0.5,
+        # The drives' own comm-loss timeout: 1 s tolerates a loaded 2-core machine
+        # running simulators and drivers side by side (0.3 s on a real robot).
+        'drive_comm_timeout': 1.0,
+        'frame_id': f'{wheel}_link',
+    }
+
+
+def sim_agv_bus(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
+                wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
+                gear_ratio: float = 10.0) -> dict[str, Any]:
+    """Return the simulated AGV's bus file: every wheel's drive on one RS-485 line."""
+    return {
+        'bus': {'name': 'rs485_0', 'transport.type': 'modbus_rtu',
+                'transport.port': f'{directory}/rs485', 'transport.timeout': 0.05,
+                'control_rate': 50.0},
+        'drives': {wheel: {'namespace': f'/agv/{wheel}', 'drive.profile': profile,
+                           'transport.unit_id': unit, 'auto_enable': True,
+                           **_wheel_settings(wheel, unit - 1, gear_ratio)}
+                   for unit, wheel in enumerate(wheels, start=1)},
+    }
+
+
+def write_bus_file(document: dict[str, Any], directory: str) -> Path:
+    path = Path(directory) / 'bus.yaml'
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(document, sort_keys=False))
+    return path
+
+
+def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
+            wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'), gear_ratio: float = 10.0,
+            ramp_time: float = 1.0, wheel_radius: float = 0.1,
+            track_width: float = 0.5) -> list[NodeSpec]:
+    """Return the simulated AGV's nodes: one RS-485 line, one bus_node, diff_drive.
+
+    The wheels' drives sit on ONE simulated line (slave ids 1..n), one bus_node
+    serves a drive node per wheel, and diff_drive turns cmd_vel into wheel
+    commands and measured wheel speeds into odom. The bus file must exist: see
+    ``write_bus_file``.
+    """
+    bus = sim_agv_bus(directory, profile, wheels, gear_ratio)
+    return [
+        NodeSpec('sim_drive', 'sim_drive', '/agv', {
+            'profile': profile, 'port': bus['bus']['transport.port'],
+            'unit_ids': list(range(1, len(wheels) + 1)),
+            'initial_values': [f'acceleration_time={ramp_time}',
+                               f'deceleration_time={ramp_time}']}),
+        NodeSpec('bus_node', 'bus', '/agv', {'config_file': f'{directory}/bus.yaml'}),
+        NodeSpec('diff_drive', 'diff_drive', '/agv', {
+            'wheel_radius': wheel_radius, 'track_width': track_width,
+            'left_wheel_command_topic': f'/agv/{wheels[0]}/drive/velocity_command',
+            'right_wheel_command_topic': f'/agv/{wheels[1]}/drive/velocity_command',
+            'left_wheel_status_topic': f'/agv/{wheels[0]}/drive/status',
+            'right_wheel_status_topic': f'/agv/{wheels[1]}/drive/status',
+            'max_wheel_velocity': 5.0}),
+    ]

@@ -55,9 +55,11 @@ class BusNode(Node):
         self.drive_nodes: list[DriveNode] = []
         for entry in self.config.drives:
             values = {**self.config.settings, **entry.settings}
+            # use_global_arguments=False: a launch file's __ns/__node remaps are meant
+            # for the bus node, not for the drives' own namespaces from the bus file.
             self.drive_nodes.append(DriveNode(
                 entry.name, controller=self.bus.controllers[entry.key],
-                namespace=entry.namespace, context=self.context,
+                namespace=entry.namespace, context=self.context, use_global_arguments=False,
                 parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self._publish_diagnostics)

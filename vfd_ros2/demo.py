@@ -7,7 +7,11 @@ and exits (0 if both wheels followed the profile).
 
   demo              start everything, run the profile, shut everything down
   demo --attach     only run the profile against already running nodes
-                    (what launch/sim_agv.launch.py does)
+                    (what launch/demo.launch.py does)
+  demo --agv        the simulated AGV instead (launch/sim_agv.launch.py without ros2
+                    launch): both drives on one RS-485 line behind one bus_node, driven
+                    through /agv/cmd_vel by the diff_drive helper; halfway the right
+                    drive is pulled off the line and plugged back
 """
 
 from __future__ import annotations
@@ -24,13 +28,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import rclpy
+from geometry_msgs.msg import Twist
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
 from vfd_ros2.msg import DriveStatus
 
-from .bringup import NodeSpec, sim_agv
+from .bringup import NodeSpec, sim_agv, sim_agv_bus, sim_wheels, write_bus_file
 
 #: (duration s, velocity rad/s at the wheel)
 PROFILE: tuple[tuple[float, float], ...] = (
@@ -128,6 +135,73 @@ def run_profile(commander: Commander, out=sys.stdout) -> bool:
     return followed
 
 
+#: (duration s, linear m/s, angular rad/s) driven through /agv/cmd_vel
+AGV_PROFILE: tuple[tuple[float, float, float], ...] = (
+    (2.5, 0.3, 0.0), (2.5, 0.2, 0.8), (2.5, 0.3, 0.0), (1.5, 0.0, 0.0))
+WHEEL_RADIUS = 0.1
+TRACK_WIDTH = 0.5
+
+
+def _set_silent(commander: Commander, units: list[int]) -> None:
+    client = commander.create_client(SetParameters, '/agv/sim_drive/set_parameters')
+    try:
+        if client.wait_for_service(timeout_sec=5.0):
+            value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY,
+                                   integer_array_value=units)
+            future = client.call_async(SetParameters.Request(
+                parameters=[Parameter(name='silent_unit_ids', value=value)]))
+            rclpy.spin_until_future_complete(commander, future, timeout_sec=5.0)
+    finally:
+        commander.destroy_client(client)
+
+
+def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
+    """Drive AGV_PROFILE through cmd_vel; unplug the right drive during step 3."""
+    cmd_vel = commander.create_publisher(Twist, '/agv/cmd_vel', 10)
+    print('  time |  v m/s  w rad/s | ' + ' | '.join(
+        f'{w.name:>11}: rad/s  state   ' for w in commander.wheels), file=out)
+    followed = True
+    start = time.monotonic()
+    for step, (duration, linear, angular) in enumerate(AGV_PROFILE):
+        if step == 2:
+            print('-- right drive pulled off the line', file=out)
+            _set_silent(commander, [2])
+        step_end = time.monotonic() + duration
+        next_print = 0.0
+        while time.monotonic() < step_end:
+            twist = Twist()
+            twist.linear.x, twist.angular.z = linear, angular
+            cmd_vel.publish(twist)
+            commander.spin_for(0.05)
+            now = time.monotonic()
+            if now >= next_print:
+                cells = [f'{now - start:5.1f}s', f'{linear:6.2f} {angular:6.2f}  ']
+                for wheel in commander.wheels:
+                    s = wheel.status
+                    cells.append(f'{_cell(s.measured_velocity) if s else "    n/a"}  '
+                                 f'{(s.state if s else "-"):<8}')
+                print(' | '.join(cells), file=out, flush=True)
+                next_print = now + 0.25
+        wanted = {'left_wheel': (linear - angular * TRACK_WIDTH / 2) / WHEEL_RADIUS,
+                  'right_wheel': (linear + angular * TRACK_WIDTH / 2) / WHEEL_RADIUS}
+        for wheel in commander.wheels:
+            status = wheel.status
+            if step == 2 and wheel.name == 'right_wheel':
+                ok = status is not None and not status.online
+                what = 'offline while unplugged'
+            else:
+                ok = status is not None and abs(status.measured_velocity -
+                                                wanted[wheel.name]) <= TOLERANCE
+                what = f'{wanted[wheel.name]:.2f} rad/s'
+            if not ok:
+                print(f'!! {wheel.name} not {what}', file=out)
+                followed = False
+        if step == 2:
+            print('-- right drive plugged back in', file=out)
+            _set_silent(commander, [0])
+    return followed
+
+
 def _start_processes(specs: list[NodeSpec], workdir: Path) -> list[subprocess.Popen]:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     processes = []
@@ -138,7 +212,12 @@ def _start_processes(specs: list[NodeSpec], workdir: Path) -> list[subprocess.Po
         processes.append(subprocess.Popen(spec.command(params), env=env, stdout=log,
                                           stderr=subprocess.STDOUT))
         if spec.executable == 'sim_drive':
-            time.sleep(0.3)   # the line's pty must exist before its driver opens it
+            # The line's pty must exist before its driver opens it (the driver would
+            # retry, but starting in order keeps the logs quiet).
+            port = Path(spec.parameters['port'])
+            deadline = time.monotonic() + 10.0
+            while not port.exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
     return processes
 
 
@@ -157,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--attach', action='store_true',
                         help='run the profile against already running nodes')
+    parser.add_argument('--agv', action='store_true',
+                        help='the bus topology with diff_drive, driven through cmd_vel')
     args, ros_args = parser.parse_known_args(argv)
     if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
         print('demo: set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (scripts/demo does)')
@@ -165,7 +246,12 @@ def main(argv: list[str] | None = None) -> int:
     processes: list[subprocess.Popen] = []
     workdir = Path(tempfile.mkdtemp(prefix='vfd_demo_'))
     if not args.attach:
-        specs = sim_agv(directory=str(workdir / 'lines'))
+        lines = str(workdir / 'lines')
+        if args.agv:
+            write_bus_file(sim_agv_bus(lines), lines)
+            specs = sim_agv(directory=lines)
+        else:
+            specs = sim_wheels(directory=lines)
         processes = _start_processes(specs, workdir)
         print(f'started {len(processes)} processes (logs in {workdir})')
     rclpy.init(args=ros_args)
@@ -175,10 +261,17 @@ def main(argv: list[str] | None = None) -> int:
         if not commander.wait_online(20.0):
             print('demo: the drives did not come online; see the logs in', workdir)
             return 1
-        for wheel in commander.wheels:
-            reply = commander.trigger(wheel, 'enable')
-            print(f'enable {wheel.name}: {reply.message if reply else "no reply"}')
-        ok = run_profile(commander)
+        if args.agv:
+            ok = run_agv_profile(commander)
+            # After the unplug the right drive reports its own comm-loss fault: reset it.
+            for wheel in commander.wheels:
+                reply = commander.trigger(wheel, 'reset_fault')
+                print(f'reset_fault {wheel.name}: {reply.message if reply else "no reply"}')
+        else:
+            for wheel in commander.wheels:
+                reply = commander.trigger(wheel, 'enable')
+                print(f'enable {wheel.name}: {reply.message if reply else "no reply"}')
+            ok = run_profile(commander)
         for wheel in commander.wheels:
             reply = commander.trigger(wheel, 'stop')
             print(f'stop {wheel.name}: {reply.message if reply else "no reply"}')

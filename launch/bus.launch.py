@@ -1,0 +1,23 @@
+"""Several drives on one link (RS-485 line, Modbus TCP card) from one bus file.
+
+    ros2 launch vfd_ros2 bus.launch.py config_file:=/path/to/bus.yaml
+
+Example bus file: share/vfd_ros2/config/sim_agv_bus.yaml.
+"""
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    return LaunchDescription([
+        DeclareLaunchArgument('config_file', description='bus YAML: the link and its drives'),
+        DeclareLaunchArgument('name', default_value='bus'),
+        DeclareLaunchArgument('namespace', default_value='/'),
+        Node(package='vfd_ros2', executable='bus_node', name=LaunchConfiguration('name'),
+             namespace=LaunchConfiguration('namespace'),
+             parameters=[{'config_file': LaunchConfiguration('config_file')}],
+             output='screen', emulate_tty=True),
+    ])
