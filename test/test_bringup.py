@@ -173,3 +173,16 @@ def test_bus_launch_file(monkeypatch):
     actions = _load_launch_file('bus.launch.py').generate_launch_description()
     node = next(a for a in actions if a.kwargs.get('executable') == 'bus_node')
     assert node.kwargs['parameters'][0]['config_file'].args == ('config_file',)
+
+
+def test_aggregator_yaml_groups_the_diagnostic_names():
+    from vfd_ros2.messages import bus_diagnostic_name, drive_diagnostic_name
+    path = LAUNCH_DIR.parent / 'config' / 'diagnostics_aggregator.yaml'
+    analyzers = yaml.safe_load(path.read_text())['analyzers']['ros__parameters']
+    drives = analyzers['traction_drives']['contains']
+    buses = analyzers['field_buses']['contains']
+    drive = drive_diagnostic_name('/agv/left_wheel/drive')
+    bus = bus_diagnostic_name('/agv/bus', 'rs485_0')
+    assert drive == 'agv/left_wheel/drive: drive'
+    assert any(p in drive for p in drives) and not any(p in drive for p in buses)
+    assert any(p in bus for p in buses) and not any(p in bus for p in drives)

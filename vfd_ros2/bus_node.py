@@ -23,6 +23,7 @@ from rclpy.parameter import Parameter
 
 from .bus import Bus, BusStatistics, load_bus_config
 from .errors import VfdError
+from .messages import bus_diagnostic_name
 from .node import DriveNode
 
 
@@ -73,7 +74,7 @@ class BusNode(Node):
             array = DiagnosticArray()
             array.header.stamp = self.get_clock().now().to_msg()
             array.status = [bus_diagnostic(
-                f'{self.get_fully_qualified_name().lstrip("/")}: bus {self.config.name}',
+                bus_diagnostic_name(self.get_fully_qualified_name(), self.config.name),
                 self.bus.transport.description, self.bus.statistics(),
                 sum(s.online for s in states), len(states))]
             self.diagnostics_pub.publish(array)

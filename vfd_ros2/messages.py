@@ -65,6 +65,16 @@ def fault_message(fault: FaultInfo, active: bool, stamp: Time, hardware_id: str)
     return msg
 
 
+def drive_diagnostic_name(node_fqn: str) -> str:
+    """`<namespace>/<node>: drive`, grouped by config/diagnostics_aggregator.yaml."""
+    return f'{node_fqn.lstrip("/")}: drive'
+
+
+def bus_diagnostic_name(node_fqn: str, bus: str) -> str:
+    """`<namespace>/<node>: bus <name>`, grouped by config/diagnostics_aggregator.yaml."""
+    return f'{node_fqn.lstrip("/")}: bus {bus}'
+
+
 def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> DiagnosticStatus:
     """One /diagnostics entry for the drive (aggregator-friendly name and keys)."""
     status = DiagnosticStatus()

@@ -40,7 +40,7 @@ from .config import SETTINGS, build_controller
 from .controller import CommandOutcome, DriveController
 from .errors import VfdError
 from .faults import NO_FAULT
-from .messages import diagnostic_status, fault_message, status_message
+from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
 from .transports import load_transport_class
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -137,7 +137,7 @@ class DriveNode(Node):
         try:
             array = DiagnosticArray()
             array.header.stamp = self.get_clock().now().to_msg()
-            name = f'{self.get_fully_qualified_name().lstrip("/")}: drive'
+            name = drive_diagnostic_name(self.get_fully_qualified_name())
             array.status = [diagnostic_status(self.controller.state, name, self._ever_online)]
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001
