@@ -40,15 +40,29 @@ class ValueType(str, enum.Enum):
     INT16 = 'int16'
     UINT32 = 'uint32'
     INT32 = 'int32'
+    # CANopen objects only (e.g. 0x6060 modes of operation, INTEGER8): never Modbus registers.
+    UINT8 = 'uint8'
+    INT8 = 'int8'
 
     @property
     def register_count(self) -> int:
         return 2 if self in (ValueType.UINT32, ValueType.INT32) else 1
 
     @property
+    def bits(self) -> int:
+        """Width of the value on the wire (CANopen object size)."""
+        if self in (ValueType.UINT8, ValueType.INT8):
+            return 8
+        return 16 * self.register_count
+
+    @property
+    def signed(self) -> bool:
+        return self in (ValueType.INT8, ValueType.INT16, ValueType.INT32)
+
+    @property
     def bounds(self) -> tuple[int, int]:
-        bits = 16 * self.register_count
-        if self in (ValueType.INT16, ValueType.INT32):
+        bits = self.bits
+        if self.signed:
             return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
         return 0, (1 << bits) - 1
 
@@ -79,6 +93,9 @@ class Parameter:
     word_order: WordOrder = WordOrder.HIGH_FIRST
     source: str = ''
     note: str = ''
+    # CANopen object dictionary entry of the same value (None: not reachable over CANopen).
+    index: int | None = None
+    subindex: int = 0
 
     @property
     def register_count(self) -> int:
@@ -314,6 +331,93 @@ class CommissioningWrite:
     why: str = ''
 
 
+class ControlStyle(str, enum.Enum):
+    """How a CANopen drive is commanded."""
+
+    CIA402 = 'cia402'              # CiA 402 state machine on a control/status word pair
+    COMMAND_WORD = 'command_word'  # a manufacturer command word (values as in `control`)
+
+
+class StopAction(str, enum.Enum):
+    """What the CiA 402 `stop` action commands while operation is enabled."""
+
+    DISABLE_OPERATION = 'disable_operation'   # ramp down, stay switched on
+    QUICK_STOP = 'quick_stop'                 # quick-stop ramp (0x605A decides)
+
+
+@dataclass(frozen=True)
+class CanObject:
+    """One CANopen object the driver maps into a PDO or writes at connect."""
+
+    index: int
+    subindex: int = 0
+    type: ValueType = ValueType.UINT16
+    scale: float = 1.0
+    unit: str = ''
+    code: str = ''      # the parameter it was taken from, if any
+
+    @property
+    def mapping(self) -> int:
+        """The 32-bit PDO mapping entry (index, sub-index, length in bits)."""
+        return (self.index << 16) | (self.subindex << 8) | self.type.bits
+
+    def __str__(self) -> str:
+        return f'0x{self.index:04X}:{self.subindex:02X}'
+
+
+@dataclass(frozen=True)
+class ObjectSet:
+    """The objects that carry control and status over CANopen, and how they are used."""
+
+    name: str
+    control: ControlStyle
+    controlword: CanObject
+    statusword: CanObject
+    target_velocity: CanObject
+    velocity_unit: SpeedUnit
+    # role -> object, mapped into the TPDOs in this order (roles as in `monitor`;
+    # `status_word` and `motor_speed` first, they share TPDO1)
+    monitor: Mapping[str, CanObject]
+    # command_word style: the values written for run/stop/disable/fault_reset
+    commands: Mapping[str, int] = field(default_factory=dict)
+    mode_of_operation: CanObject | None = None
+    mode_value: int = 0
+    stop_action: StopAction = StopAction.DISABLE_OPERATION
+    note: str = ''
+
+
+class EmcyFault(str, enum.Enum):
+    """Where an EMCY frame carries the drive's own fault code."""
+
+    ERROR_CODE = 'error_code'       # bytes 0-1, the CiA 301/402 error code
+    MANUFACTURER_BYTE = 'byte3'     # byte 3 (first manufacturer byte), e.g. Kinco E001 = 1
+
+
+@dataclass(frozen=True)
+class CanopenSpec:
+    """CiA 301 limits of the drive family and the object sets it can be driven through."""
+
+    object_set: str
+    object_sets: Mapping[str, ObjectSet]
+    heartbeat_ms: int = 100                 # written to 0x1017 at connect
+    heartbeat_timeout_factor: float = 3.0   # host consumer timeout = factor x producer time
+    rpdos: int = 4
+    tpdos: int = 4
+    transmission_type: int = 255
+    tpdo_event_timer_ms: int = 0            # 0x18xx:05 (0 = send on change only)
+    rpdo_deadline: bool = False             # 0x14xx:05 supervises RPDO reception
+    expedited_only: bool = True
+    emcy_fault: EmcyFault = EmcyFault.ERROR_CODE
+    note: str = ''
+
+    def selected(self, name: str = '') -> ObjectSet:
+        key = name or self.object_set
+        if key not in self.object_sets:
+            raise ParameterError(
+                f'unknown CANopen object set {key!r}; available: {", ".join(self.object_sets)}')
+        return self.object_sets[key]
+
+
 @dataclass(frozen=True)
 class Profile:
     name: str
@@ -336,6 +440,7 @@ class Profile:
     setpoints: Mapping[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
     source_file: str = ''
+    canopen: CanopenSpec | None = None
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
     _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
     _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)
@@ -423,9 +528,12 @@ def _parameter(data: Any, where: str) -> Parameter:
     code = str(r.get('code'))
     value_type = _enum(ValueType, r.get('type', 'uint16'), f'{where}.type')
     options = {int(k): str(v) for k, v in (r.get('options', {}) or {}).items()}
+    index = r.get('index', None, kind=(int, type(None)))
+    # CANopen-only profiles name objects, not registers: address -1 = no Modbus register.
+    address = r.get('address', ... if index is None else -1, kind=int)
     parameter = Parameter(
         code=code,
-        address=int(r.get('address', kind=int)),
+        address=int(address),
         description=str(r.get('description')),
         type=value_type,
         scale=float(_number(r.get('scale', 1.0), f'{where}.scale')),
@@ -439,12 +547,16 @@ def _parameter(data: Any, where: str) -> Parameter:
         word_order=_enum(WordOrder, r.get('word_order', 'high_first'), f'{where}.word_order'),
         source=str(r.get('source', '') or ''),
         note=str(r.get('note', '') or ''),
+        index=index,
+        subindex=int(r.get('subindex', 0, kind=int)),
     )
     r.done()
     if parameter.scale == 0:
         raise ProfileError(f'{where}: scale must not be 0')
-    if not 0 <= parameter.address <= 0xFFFF:
+    if parameter.address != -1 and not 0 <= parameter.address <= 0xFFFF:
         raise ProfileError(f'{where}: address {parameter.address:#x} out of 16-bit range')
+    if index is not None and not (0 <= index <= 0xFFFF and 0 <= parameter.subindex <= 0xFF):
+        raise ProfileError(f'{where}: object {index:#x}:{parameter.subindex} out of range')
     return parameter
 
 
@@ -489,6 +601,91 @@ def _flag(data: Any, where: str) -> FlagRule:
     )
     r.done()
     return rule
+
+
+def _can_object(data: Any, where: str, parameters: Mapping[str, Parameter]) -> CanObject:
+    """Read a parameter code (its index, type, scale) or an inline {index, subindex, ...}."""
+    if isinstance(data, str):
+        parameter = parameters.get(data)
+        if parameter is None or parameter.index is None:
+            raise ProfileError(f'{where}: {data!r} is not a parameter with a CANopen index')
+        return CanObject(parameter.index, parameter.subindex, parameter.type, parameter.scale,
+                         parameter.unit, parameter.code)
+    r = _Reader(data, where)
+    obj = CanObject(
+        index=int(r.get('index', kind=int)),
+        subindex=int(r.get('subindex', 0, kind=int)),
+        type=_enum(ValueType, r.get('type', 'uint16'), f'{where}.type'),
+        scale=float(_number(r.get('scale', 1.0), f'{where}.scale')),
+        unit=str(r.get('unit', '') or ''),
+    )
+    r.get('note', '')
+    r.done()
+    if obj.scale == 0:
+        raise ProfileError(f'{where}: scale must not be 0')
+    return obj
+
+
+def _object_set(name: str, data: Any, where: str,
+                parameters: Mapping[str, Parameter]) -> ObjectSet:
+    r = _Reader(data, where)
+    mode = r.get('mode_of_operation', None)
+    object_set = ObjectSet(
+        name=name,
+        control=_enum(ControlStyle, r.get('control'), f'{where}.control'),
+        controlword=_can_object(r.get('controlword'), f'{where}.controlword', parameters),
+        statusword=_can_object(r.get('statusword'), f'{where}.statusword', parameters),
+        target_velocity=_can_object(r.get('target_velocity'), f'{where}.target_velocity',
+                                    parameters),
+        velocity_unit=_enum(SpeedUnit, r.get('velocity_unit', 'rpm'), f'{where}.velocity_unit'),
+        monitor={str(role): _can_object(obj, f'{where}.monitor.{role}', parameters)
+                 for role, obj in r.get('monitor', kind=Mapping).items()},
+        commands={str(k): int(v) for k, v in (r.get('commands', {}) or {}).items()},
+        mode_of_operation=_can_object(mode, f'{where}.mode_of_operation', parameters)
+        if mode is not None else None,
+        mode_value=int(r.get('mode_value', 0)),
+        stop_action=_enum(StopAction, r.get('stop_action', 'disable_operation'),
+                          f'{where}.stop_action'),
+        note=str(r.get('note', '') or ''),
+    )
+    r.done()
+    for role in ('status_word', 'motor_speed'):
+        if role not in object_set.monitor:
+            raise ProfileError(f'{where}.monitor needs {role!r}')
+    if object_set.control is ControlStyle.COMMAND_WORD:
+        for action in ('run', 'stop', 'fault_reset'):
+            if action not in object_set.commands:
+                raise ProfileError(f'{where}.commands needs {action!r}')
+    return object_set
+
+
+def _canopen(data: Any, where: str, parameters: Mapping[str, Parameter]) -> CanopenSpec:
+    r = _Reader(data, where)
+    sets = r.get('object_sets', kind=Mapping)
+    spec = CanopenSpec(
+        object_set=str(r.get('object_set')),
+        object_sets={str(name): _object_set(str(name), item, f'{where}.object_sets.{name}',
+                                            parameters) for name, item in sets.items()},
+        heartbeat_ms=int(r.get('heartbeat_ms', 100, kind=int)),
+        heartbeat_timeout_factor=float(_number(r.get('heartbeat_timeout_factor', 3.0),
+                                               f'{where}.heartbeat_timeout_factor')),
+        rpdos=int(r.get('rpdos', 4, kind=int)),
+        tpdos=int(r.get('tpdos', 4, kind=int)),
+        transmission_type=int(r.get('transmission_type', 255, kind=int)),
+        tpdo_event_timer_ms=int(r.get('tpdo_event_timer_ms', 0, kind=int)),
+        rpdo_deadline=bool(r.get('rpdo_deadline', False, kind=bool)),
+        expedited_only=bool(r.get('expedited_only', True, kind=bool)),
+        emcy_fault=_enum(EmcyFault, r.get('emcy_fault', 'error_code'), f'{where}.emcy_fault'),
+        note=str(r.get('note', '') or ''),
+    )
+    r.done()
+    if spec.object_set not in spec.object_sets:
+        raise ProfileError(f'{where}.object_set {spec.object_set!r} is not in object_sets')
+    if not 1 <= spec.rpdos <= 512 or not 1 <= spec.tpdos <= 512:
+        raise ProfileError(f'{where}: rpdos/tpdos must be 1..512')
+    if spec.heartbeat_ms < 0 or spec.heartbeat_timeout_factor <= 1.0:
+        raise ProfileError(f'{where}: heartbeat_ms >= 0 and heartbeat_timeout_factor > 1')
+    return spec
 
 
 def _read_yaml(path: Path) -> Any:
@@ -542,7 +739,8 @@ def _load_profile_file(path: Path) -> Profile:
             if parameter.name in by_name:
                 raise ProfileError(f'{path.name}: readable name {parameter.name!r} used twice')
             by_name[parameter.name] = parameter.code
-        by_address.setdefault(parameter.address, parameter.code)
+        if parameter.address >= 0:
+            by_address.setdefault(parameter.address, parameter.code)
 
     mb = r.sub('modbus', {})
     serial = mb.sub('serial', {})
@@ -638,6 +836,9 @@ def _load_profile_file(path: Path) -> Profile:
             code=str(cr.get('code')), value=float(cr.get('value')), why=str(cr.get('why', ''))))
         cr.done()
 
+    canopen = _canopen(r.get('canopen'), 'canopen', parameters) \
+        if r.get('canopen', None) is not None else None
+
     profile = Profile(
         name=str(r.get('name')),
         vendor=str(r.get('vendor')),
@@ -657,6 +858,7 @@ def _load_profile_file(path: Path) -> Profile:
         setpoints={str(k): str(v) for k, v in (r.get('setpoints', {}) or {}).items()},
         notes=tuple(str(n) for n in r.get('notes', []) or []),
         source_file=str(path),
+        canopen=canopen,
         _by_name=by_name,
         _by_address=by_address,
         _by_folded_code={code.casefold(): code for code in parameters},

@@ -2,8 +2,9 @@
 
 Parameters:
   profile            drive profile of the simulated drives
-  transport          modbus_rtu (a pseudo-terminal behind ``port``) or modbus_tcp
-                     (a server on 127.0.0.1:``tcp_port``)
+  transport          modbus_rtu (a pseudo-terminal behind ``port``), modbus_tcp
+                     (a server on 127.0.0.1:``tcp_port``) or canopen (node ids = unit_ids
+                     on python-can ``interface``/``channel``, default virtual/vcan0)
   port               stable path the driver opens (a symlink to the pty)
   unit_ids           slave ids served on the line, e.g. [1, 2]
   baudrate           0 = the profile's factory setting (used for wire time)
@@ -30,6 +31,7 @@ from vfd_ros2.srv import InjectFault
 
 from ..errors import VfdError
 from ..profile import load_profile
+from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
 from .rtu_line import SimulatedRtuLine
 from .tcp_server import SimulatedTcpServer
@@ -63,22 +65,41 @@ class SimDriveNode(Node):
         declare('silent_unit_ids', Parameter.Type.INTEGER_ARRAY,
                 'drives that do not hear or answer (cable unplugged)')
         tcp_port = int(declare('tcp_port', 1502, 'modbus_tcp: port on 127.0.0.1 (0 = any)'))
-        self.drives = [SimulatedDrive(profile, int(unit), initial) for unit in unit_ids]
-        serial = profile.modbus.serial
-        if transport == 'modbus_rtu':
-            self.line = SimulatedRtuLine(
-                self.drives, port, baudrate=baudrate or serial.baudrate, parity=serial.parity,
-                stopbits=serial.stopbits, emulate_wire_time=wire_time, corrupt_rate=corrupt)
-        elif transport == 'modbus_tcp':
-            self.line = SimulatedTcpServer(self.drives, tcp_port)
+        if transport == 'canopen':
+            self.line, where = self._canopen(profile, unit_ids, initial)
         else:
-            raise VfdError(f'sim_drive: transport {transport!r} is not simulated')
-        self.line.start()
-        where = port if transport == 'modbus_rtu' else f'tcp://127.0.0.1:{self.line.port}'
+            self.line, where = self._modbus(profile, transport, port, unit_ids, initial,
+                                            baudrate, wire_time, corrupt, tcp_port)
         self.add_on_set_parameters_callback(self._on_parameters)
         self.create_service(InjectFault, '~/inject_fault', self._on_inject_fault)
         self.get_logger().info(
             f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {where}')
+
+    def _canopen(self, profile: Any, unit_ids: list, initial: dict) -> tuple[Any, str]:
+        """CANopen twins (node ids = unit_ids) on one python-can channel."""
+        interface = self._declare('interface', 'virtual', 'canopen: python-can interface')
+        channel = self._declare('channel', 'vcan0', 'canopen: CAN channel')
+        object_set = self._declare('object_set', '', "canopen: object set ('' = profile's)")
+        self.drives = [SimulatedCanopenDrive(profile, int(unit), object_set, initial)
+                       for unit in unit_ids]
+        line = SimulatedCanBus(self.drives, channel, interface).start()
+        return line, f'can:{interface}:{channel}'
+
+    def _modbus(self, profile: Any, transport: str, port: str, unit_ids: list, initial: dict,
+                baudrate: int, wire_time: bool, corrupt: float,
+                tcp_port: int) -> tuple[Any, str]:
+        self.drives = [SimulatedDrive(profile, int(unit), initial) for unit in unit_ids]
+        serial = profile.modbus.serial
+        if transport == 'modbus_rtu':
+            line = SimulatedRtuLine(
+                self.drives, port, baudrate=baudrate or serial.baudrate, parity=serial.parity,
+                stopbits=serial.stopbits, emulate_wire_time=wire_time, corrupt_rate=corrupt)
+        elif transport == 'modbus_tcp':
+            line = SimulatedTcpServer(self.drives, tcp_port)
+        else:
+            raise VfdError(f'sim_drive: transport {transport!r} is not simulated')
+        line.start()
+        return line, port if transport == 'modbus_rtu' else f'tcp://127.0.0.1:{line.port}'
 
     def _declare(self, name: str, default: Any, description: str) -> Any:
         return self.declare_parameter(

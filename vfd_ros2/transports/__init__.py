@@ -22,6 +22,7 @@ ENTRY_POINT_GROUP = 'vfd_ros2.transports'
 BUILTIN_TRANSPORTS: dict[str, str] = {
     'modbus_rtu': 'vfd_ros2.transports.modbus:ModbusRtuTransport',
     'modbus_tcp': 'vfd_ros2.transports.modbus:ModbusTcpTransport',
+    'canopen': 'vfd_ros2.transports.canopen:CanopenTransport',
 }
 
 __all__ = [

@@ -1,0 +1,178 @@
+"""The Kinco manual's SDO frames, byte for byte, on python-can's virtual bus (no ROS).
+
+A listener bus on the same channel captures what the driver sends; the drive
+side is either the simulated twin or a responder that answers with the manual's
+printed frames (test/vectors/kinco_ec_frames.yaml, sdo_frames).
+"""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+import yaml
+
+from harness import wait_for
+from vfd_ros2.canopen_drive import CanopenDrive, pack_pdo, unpack_pdo
+from vfd_ros2.errors import CommTimeout, ProtocolException
+from vfd_ros2.profile import CanObject, ValueType, load_profile
+from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+from vfd_ros2.transports import load_transport_class
+from vfd_ros2.transports.canopen import SDO_ABORT_CODES, CanopenTransport, Emcy, abort_text
+
+VECTORS = Path(__file__).parent / 'vectors' / 'kinco_ec_frames.yaml'
+FRAMES = {f['id']: f for f in yaml.safe_load(VECTORS.read_text(encoding='utf-8'))['sdo_frames']}
+
+
+def frame_bytes(frame_id: str) -> tuple[int, bytes]:
+    frame = FRAMES[frame_id]
+    return frame['cob_id'], bytes.fromhex(frame['data'])
+
+
+class Sniffer(can.Listener):
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface='virtual', channel=channel)
+        self.frames: list[tuple[int, bytes]] = []
+        self.notifier = can.Notifier(self.bus, [self])
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.frames.append((msg.arbitration_id, bytes(msg.data)))
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+class Responder(can.Listener):
+    """Answers an SDO request with a scripted reply (the manual's frame)."""
+
+    def __init__(self, channel: str, reply: tuple[int, bytes]) -> None:
+        self.bus = can.Bus(interface='virtual', channel=channel)
+        self.reply = reply
+        self.notifier = can.Notifier(self.bus, [self])
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if 0x600 < msg.arbitration_id < 0x680:
+            self.bus.send(can.Message(arbitration_id=self.reply[0], data=self.reply[1],
+                                      is_extended_id=False))
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+
+@pytest.fixture
+def channel():
+    return f'frames{uuid.uuid4().hex[:8]}'
+
+
+def kinco_drive(channel: str) -> CanopenDrive:
+    profile = load_profile('kinco_ec')
+    transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2)
+    drive = CanopenDrive(profile, transport, 1, VelocityScaling(1.0, False, 3000.0, 2))
+    drive.open()
+    return drive
+
+
+def test_registered_by_name():
+    cls = load_transport_class('canopen')
+    assert cls is CanopenTransport and cls.drive_class.endswith(':CanopenDrive')
+
+
+def test_s1_s2_write_a0_03_byte_for_byte(channel):
+    sim_bus = SimulatedCanBus([SimulatedCanopenDrive(load_profile('kinco_ec'), 1)],
+                              channel).start()
+    sniffer = Sniffer(channel)
+    drive = kinco_drive(channel)
+    try:
+        value, _ = drive.set_parameter('A0.03', 1000, persistent=False, running=False)
+        assert value.raw == 1000
+        wait_for(lambda: frame_bytes('S2') in sniffer.frames, 2.0, 'S2 reply')
+        sdo = [f for f in sniffer.frames if 0x580 < f[0] < 0x680]
+        assert sdo[0] == frame_bytes('S1')          # 601: 2B 00 28 04 E8 03 00 00
+        assert sdo[1] == frame_bytes('S2')          # 581: 60 00 28 04 00 00 00 00
+    finally:
+        drive.close()
+        sniffer.close()
+        sim_bus.stop()
+
+
+def test_s4_s5_read_status_word_1(channel):
+    responder = Responder(channel, frame_bytes('S5'))
+    sniffer = Sniffer(channel)
+    drive = kinco_drive(channel)
+    try:
+        value = drive.get_parameter('0x3300')
+        assert value.raw == 0x0001                  # running forward, no fault (L941)
+        assert sniffer.frames[0] == frame_bytes('S4')
+    finally:
+        drive.close()
+        sniffer.close()
+        responder.close()
+
+
+@pytest.mark.parametrize('reply, code', [('S3', 0x06070010), ('S6', 0x06020000)])
+def test_s3_s6_abort_frames_are_decoded(channel, reply, code):
+    responder = Responder(channel, frame_bytes(reply))
+    drive = kinco_drive(channel)
+    try:
+        with pytest.raises(ProtocolException) as error:
+            drive.get_parameter('0x3300')
+        assert error.value.code == code and error.value.text == SDO_ABORT_CODES[code]
+        assert f'0x{code:08X}' in str(error.value) and SDO_ABORT_CODES[code] in str(error.value)
+    finally:
+        drive.close()
+        responder.close()
+
+
+@pytest.mark.parametrize('index, sub, value_type, code', [
+    (0x2D00, 0, ValueType.UINT16, 0x06020000),     # object does not exist
+    (0x2800, 0x0B, ValueType.UINT16, 0x06090011),  # sub-index does not exist
+    (0x2B00, 0, ValueType.UINT16, 0x06010002),     # status word 1 is read-only (write)
+    (0x2800, 0x04, ValueType.UINT32, 0x06070010),  # 4 bytes to a 2-byte object
+    (0x2800, 0x04, ValueType.UINT16, 0x06090031),  # A0.03 = 20000 > 10000
+])
+def test_twin_answers_spec_abort_codes(channel, index, sub, value_type, code):
+    sim_bus = SimulatedCanBus([SimulatedCanopenDrive(load_profile('kinco_ec'), 1)],
+                              channel).start()
+    drive = kinco_drive(channel)
+    try:
+        with pytest.raises(ProtocolException) as error:
+            if code == 0x06020000 or code == 0x06090011:
+                drive.transport.read_object(index, sub, value_type)
+            else:
+                drive.transport.write_object(index, sub, value_type, 20000)
+        assert error.value.code == code, str(error.value)
+        assert error.value.text == abort_text(code)
+    finally:
+        drive.close()
+        sim_bus.stop()
+
+
+def test_no_reply_is_a_timeout_not_a_hang(channel):
+    drive = kinco_drive(channel)
+    try:
+        with pytest.raises(CommTimeout) as error:
+            drive.get_parameter('0x3300')
+        assert 'no SDO reply' in str(error.value)
+        assert drive.transport.stats.timeouts == 1
+    finally:
+        drive.close()
+
+
+def test_pdo_packing_little_endian_and_signed():
+    cw = CanObject(0x6040, 0, ValueType.UINT16)
+    v = CanObject(0x60FF, 0, ValueType.INT32)
+    data = pack_pdo([(cw, 0x000F), (v, -100)])
+    assert data == bytes.fromhex('0F 00 9C FF FF FF')
+    assert unpack_pdo([cw, v], data) == [0x000F, -100]
+    assert cw.mapping == 0x60400010 and v.mapping == 0x60FF0020
+
+
+def test_emcy_decode_and_unknown_abort_code():
+    frame = Emcy.decode(bytes.fromhex('00 FF 01 08 00 00 00 00'), 0.0)
+    assert frame.code == 0xFF00 and frame.register == 1 and frame.data[0] == 8
+    assert 'unknown SDO abort code 0x12345678' == abort_text(0x12345678)

@@ -1,0 +1,157 @@
+"""Drive node <-> simulated CANopen drives over python-can's virtual bus (real frames)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
+from harness import wait_for
+from vfd_ros2.cia402 import State
+from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
+
+
+def test_command_status_and_watchdog(make_can_harness):
+    h = make_can_harness(node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    assert sim.state is not State.OPERATION_ENABLED and sim.speed_rpm == 0.0  # start-up: still
+    wheel.stream(1.0)
+    status = wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02,
+                               6.0, 'at 1 rad/s')
+    assert status.online and not status.fault and status.commanded_velocity == 1.0
+    assert sim.state is State.OPERATION_ENABLED and sim.speed_rpm > 0
+    assert sim.rpdos_received > 10                      # cyclic control over PDOs
+    wheel.stream(-1.0)
+    wheel.wait_status(lambda s: abs(s.measured_velocity + 1.0) < 0.02 and s.reverse, 6.0,
+                      'at -1 rad/s')
+    wheel.stop_stream()
+    wheel.wait_status(lambda s: s.watchdog_tripped, 2.0, 'watchdog')
+    wait_for(lambda: sim.speed_rpm == 0.0 and sim.state is State.SWITCHED_ON, 5.0,
+             'motor stopped, operation disabled')
+    reply = wheel.trigger('disable')
+    assert reply.success, reply.message
+    wait_for(lambda: sim.state is State.SWITCH_ON_DISABLED, 2.0, 'voltage disabled')
+
+
+def test_fault_emcy_and_reset(make_can_harness):
+    h = make_can_harness()
+    wheel, sim = h.wheels[1], h.sims[1]
+    entry = h.profile.faults.table[0x2310]
+    sim.inject_fault(0x2310, latched=True)
+    fault = wait_for(lambda: next((f for f in reversed(wheel.faults) if f.active), None), 3.0,
+                     'fault message')
+    assert fault.code == 0x2310 and fault.name == entry.name and fault.known
+    assert fault.remedy == entry.remedy and fault.display == '2310h (8976)'
+    assert not wheel.trigger('reset_fault').success          # cause still present
+    sim.inject_fault(0)
+    reply = wheel.trigger('reset_fault')
+    assert reply.success, reply.message
+    wheel.wait_status(lambda s: not s.fault, 3.0, 'fault cleared')
+    assert sim.emcy_sent[-1][0] == 0                        # EMCY "error reset"
+    sim.inject_fault(0x1234)                                # not in the profile's table
+    fault = wait_for(lambda: next((f for f in reversed(wheel.faults)
+                                   if f.active and f.code == 0x1234), None), 3.0, 'unknown')
+    assert not fault.known and 'unknown' in fault.name
+    assert wheel.status.online
+
+
+def test_parameters_and_abort_codes(make_can_harness):
+    h = make_can_harness()
+    wheel, sim = h.wheels[1], h.sims[1]
+    reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name='profile_acceleration', value=1500.0,
+                                                 persistent=False))
+    assert reply.success, reply.message
+    assert sim.value('0x6083') == 1500.0
+    got = wheel.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='0x6083'))
+    assert got.success and got.value == 1500.0
+    for name, bad, why in (('0x6083', 2e6, 'above the maximum'),
+                           ('0x6083', math.nan, 'not a finite number'),
+                           ('statusword', 0.0, 'read-only'),
+                           ('operating_mode', 5.0, 'not one of the options'),
+                           ('no_such_parameter', 1.0, 'unknown parameter')):
+        reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                           SetDriveParameter.Request(name=name, value=bad, persistent=False))
+        assert not reply.success and why in reply.message, (name, reply.message)
+    assert sim.value('0x6083') == 1500.0
+    # The drive's own range (0x6080 max motor speed): the twin limits it to 0..100000 too;
+    # a value the driver accepts but the drive refuses comes back as an SDO abort text.
+    sim.parameters[(0x6080, 0)] = dataclasses.replace(sim.parameters[(0x6080, 0)],
+                                                      maximum=5000)
+    reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name='max_motor_speed', value=6000.0,
+                                                 persistent=False))
+    assert not reply.success
+    assert 'SDO abort 0x06090031 (Value of parameter written too high' in reply.message
+
+
+def test_heartbeat_loss_and_recovery(make_can_harness):
+    h = make_can_harness(node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running, 6.0, 'running')
+    sim.silent = True                                       # cable unplugged
+    status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline')
+    assert 'heartbeat' in status.stop_reason or status.timeouts > 0, status.stop_reason
+    # The drive's RPDO deadline (0x1400:05 = drive_comm_timeout) stops the motor by itself.
+    wait_for(lambda: sim.fault_code == 0x8250 and sim.speed_rpm == 0.0, 3.0, 'RPDO timeout')
+    sim.silent = False
+    status = wheel.wait_status(lambda s: s.online, 6.0, 'back online (same node process)')
+    assert status.reconnects >= 1
+    wheel.wait_status(lambda s: s.fault and s.fault_code == 0x8250, 3.0, 'RPDO timeout fault')
+    assert sim.state is State.FAULT                          # never resumes by itself
+    assert wheel.trigger('reset_fault').success
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,
+                      'moving again')
+
+
+def test_two_drives_one_bus_dead_node_does_not_stall_the_other(make_can_harness):
+    h = make_can_harness(node_ids=(1, 2), node_parameters={'auto_enable': True})
+    left, right = h.wheels[1], h.wheels[2]
+    left.stream(1.0)
+    right.stream(-0.5)
+    left.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0, 'left')
+    right.wait_status(lambda s: abs(s.measured_velocity + 0.5) < 0.02, 6.0, 'right')
+    h.sims[2].silent = True
+    right.wait_status(lambda s: not s.online, 3.0, 'right offline')
+    count = len(left.statuses)
+    left.wait_status(lambda s: s.online and s.running and len(left.statuses) > count + 25,
+                     3.0, 'left keeps running with fresh status')
+    left.stream(0.5)
+    left.wait_status(lambda s: abs(s.measured_velocity - 0.5) < 0.02, 3.0, 'left follows')
+    assert h.sims[1].fault_code == 0
+
+
+def test_drive_that_cannot_be_enabled_is_reported(make_can_harness):
+    h = make_can_harness(node_parameters={'action_timeout': 1.0})
+    wheel, sim = h.wheels[1], h.sims[1]
+    sim.enable_blocked = True                               # e.g. safe torque off active
+    wheel.stream(1.0)
+    reply = wheel.trigger('enable')
+    assert not reply.success and 'running' in reply.message, reply.message
+    status = wheel.status
+    assert status.online and not status.running
+    words = dict(zip(status.status_word_names, status.status_words_raw))
+    assert words['cia402_state'] == State.SWITCH_ON_DISABLED
+    assert sim.speed_rpm == 0.0
+
+
+@pytest.mark.parametrize('object_set', ['manufacturer', 'ds402'])
+def test_kinco_over_canopen(make_can_harness, object_set):
+    h = make_can_harness(profile='kinco_ec', object_set=object_set,
+                         node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    assert sim.bus_control()                      # A0.04 = 2 written at connect (SDO)
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,
+                      'kinco at 1 rad/s')
+    entry = h.profile.faults.table[8]
+    sim.inject_fault(8, latched=False)
+    fault = wait_for(lambda: next((f for f in reversed(wheel.faults) if f.active), None), 3.0,
+                     'kinco fault')
+    assert fault.code == 8 and fault.name == entry.name and fault.display == 'E008'
+    reply = wheel.trigger('reset_fault')
+    assert reply.success, reply.message

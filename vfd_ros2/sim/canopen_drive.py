@@ -1,0 +1,555 @@
+"""A simulated CANopen drive (CiA 301 + CiA 402) on the ``canopen`` library's LocalNode.
+
+Built from the same profile as the driver (its ``canopen`` section and the
+parameters' objects). What it does, over real CAN frames:
+- answers SDO from an object dictionary built from the profile: CiA 301 abort
+  codes for an unknown index (0602 0000) or sub-index (0609 0011), a read-only
+  object (0601 0002), a wrong length (0607 0010) and a value out of range
+  (0609 0031 / 0609 0032 / 0609 0030);
+- takes PDO communication and mapping parameters, receives RPDOs and sends its
+  TPDOs itself (on change and on the event timer), in NMT Operational only;
+- NMT commands, boot-up, heartbeat production at 0x1017;
+- the CiA 402 state machine (``vfd_ros2.cia402``) or a manufacturer command word
+  (Kinco 0x2A00), a speed ramp, EMCY on faults and on their reset;
+- fault injection, silence injection (cable unplugged), a drive that cannot be
+  enabled, and a motor stop when the master's RPDOs stop (0x1400:05 deadline).
+
+Several drives share one ``SimulatedCanBus``; one thread ticks them in turn.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from typing import Any, Callable
+
+import canopen
+from canopen import objectdictionary as od
+from canopen.sdo import SdoAbortedError
+
+from ..cia402 import STATUSWORD_OF, ControlBit, State, transition
+from ..errors import ParameterError
+from ..profile import (
+    ControlStyle,
+    EmcyFault,
+    Parameter,
+    Profile,
+    ValueType,
+)
+
+_DATA_TYPE = {
+    ValueType.UINT8: od.UNSIGNED8, ValueType.INT8: od.INTEGER8,
+    ValueType.UINT16: od.UNSIGNED16, ValueType.INT16: od.INTEGER16,
+    ValueType.UINT32: od.UNSIGNED32, ValueType.INT32: od.INTEGER32,
+}
+PDO_DISABLED = 0x80000000
+RPDO_TIMEOUT = 0x8250          # CiA 301 EMCY: RPDO timeout
+MANUFACTURER_EMCY = 0xFF00
+
+
+def _variable(name: str, index: int, subindex: int, value_type: ValueType, access: str,
+              default: int = 0) -> od.ODVariable:
+    var = od.ODVariable(name, index, subindex)
+    var.data_type = _DATA_TYPE[value_type]
+    var.access_type = access
+    var.default = default
+    return var
+
+
+class _TwinNode(canopen.LocalNode):
+    """LocalNode whose heartbeat the twin produces itself (so silence silences it)."""
+
+    def __init__(self, node_id: int, dictionary: od.ObjectDictionary) -> None:
+        super().__init__(node_id, dictionary)
+        self._write_callbacks.remove(self.nmt.on_write)
+
+
+class SimulatedCanopenDrive:
+    """One simulated CANopen drive (thread-safe: the bus thread and tests share it)."""
+
+    def __init__(self, profile: Profile, node_id: int = 1, object_set: str = '',
+                 initial: dict[str, float] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if profile.canopen is None:
+            raise ParameterError(f'profile {profile.name} has no canopen section')
+        self.profile = profile
+        self.node_id = node_id
+        self.spec = profile.canopen
+        self.objects = self.spec.selected(object_set)
+        self.cia402 = self.objects.control is ControlStyle.CIA402
+        self._clock = clock
+        self.lock = threading.RLock()
+        self.parameters: dict[tuple[int, int], Parameter] = {
+            (p.index, p.subindex): p for p in profile.parameters.values() if p.index is not None}
+        self.node = _TwinNode(node_id, self._dictionary())
+        self.node.add_write_callback(self._on_sdo_write)
+        self.node.add_read_callback(self._on_sdo_read)
+        for code, value in (initial or {}).items():
+            parameter = profile.parameter(code)
+            self.node.data_store.setdefault(parameter.index, {})[parameter.subindex] = \
+                struct.pack(_fmt(parameter.type), parameter.to_raw(value))
+        self.network: Any = None
+        self.state = State.SWITCH_ON_DISABLED
+        self.controlword = 0
+        self.target_raw = 0
+        self.speed_rpm = 0.0
+        self.run_requested = False          # command_word style
+        self.fault_code = 0
+        self.fault_cause_present = False
+        self.silent = False
+        self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
+        self.emcy_sent: list[tuple[int, int, bytes]] = []
+        self.rpdos_received = 0
+        self._last_rpdo: float | None = None
+        self._last_heartbeat = 0.0
+        self._tpdo_sent: dict[int, tuple[bytes, float]] = {}
+        self._last_tick = clock()
+
+    # --- object dictionary ----------------------------------------------------------------
+
+    def _dictionary(self) -> od.ObjectDictionary:
+        d = od.ObjectDictionary()
+        node = self.node_id
+        d.add_object(_variable('Device type', 0x1000, 0, ValueType.UINT32, 'ro', 0x00020192))
+        d.add_object(_variable('Error register', 0x1001, 0, ValueType.UINT8, 'ro'))
+        d.add_object(_variable('Producer heartbeat time', 0x1017, 0, ValueType.UINT16, 'rw'))
+        for number in range(self.spec.rpdos):
+            self._pdo_objects(d, 0x1400 + number, 0x1600 + number,
+                              0x200 + 0x100 * number + node, 'RPDO')
+        for number in range(self.spec.tpdos):
+            self._pdo_objects(d, 0x1800 + number, 0x1A00 + number,
+                              0x180 + 0x100 * number + node, 'TPDO')
+        entries: dict[int, list[tuple[int, str, ValueType, str, int]]] = {}
+        for (index, sub), p in self.parameters.items():
+            raw = p.to_raw(p.default) if p.default is not None else 0
+            entries.setdefault(index, []).append(
+                (sub, p.code, p.type, 'ro' if p.access.value == 'ro' else 'rw', raw))
+        objs = [self.objects.controlword, self.objects.statusword, self.objects.target_velocity,
+                *self.objects.monitor.values()]
+        if self.objects.mode_of_operation is not None:
+            objs.append(self.objects.mode_of_operation)
+        for obj in objs:
+            if (obj.index, obj.subindex) not in self.parameters and not any(
+                    e[0] == obj.subindex for e in entries.get(obj.index, [])):
+                writable = obj in (self.objects.controlword, self.objects.target_velocity,
+                                   self.objects.mode_of_operation)
+                entries.setdefault(obj.index, []).append(
+                    (obj.subindex, str(obj), obj.type, 'rw' if writable else 'ro', 0))
+        for index, subs in sorted(entries.items()):
+            if len(subs) == 1 and subs[0][0] == 0:
+                sub, name, value_type, access, raw = subs[0]
+                d.add_object(_variable(name, index, 0, value_type, access, raw))
+                continue
+            record = od.ODRecord(f'0x{index:04X}', index)
+            record.add_member(_variable('Number of entries', index, 0, ValueType.UINT8, 'ro',
+                                        max(s[0] for s in subs)))
+            for sub, name, value_type, access, raw in subs:
+                if sub:
+                    record.add_member(_variable(name, index, sub, value_type, access, raw))
+            d.add_object(record)
+        return d
+
+    @staticmethod
+    def _pdo_objects(d: od.ObjectDictionary, comm: int, mapping: int, cob: int,
+                     kind: str) -> None:
+        record = od.ODRecord(f'{kind} communication', comm)
+        record.add_member(_variable('Highest sub-index', comm, 0, ValueType.UINT8, 'ro', 5))
+        record.add_member(_variable('COB-ID', comm, 1, ValueType.UINT32, 'rw',
+                                    PDO_DISABLED | cob))
+        record.add_member(_variable('Transmission type', comm, 2, ValueType.UINT8, 'rw', 255))
+        if kind == 'TPDO':
+            record.add_member(_variable('Inhibit time', comm, 3, ValueType.UINT16, 'rw'))
+        record.add_member(_variable('Event timer', comm, 5, ValueType.UINT16, 'rw'))
+        d.add_object(record)
+        record = od.ODRecord(f'{kind} mapping', mapping)
+        record.add_member(_variable('Number of mapped objects', mapping, 0, ValueType.UINT8,
+                                    'rw'))
+        for sub in range(1, 9):
+            record.add_member(_variable(f'Mapped object {sub}', mapping, sub, ValueType.UINT32,
+                                        'rw'))
+        d.add_object(record)
+
+    def _stored(self, index: int, subindex: int) -> int:
+        obj = self.node._find_object(index, subindex)   # noqa: SLF001 - the OD lookup
+        data = self.node.data_store.get(index, {}).get(subindex)
+        return obj.decode_raw(data) if data is not None else int(obj.default or 0)
+
+    def value(self, code: str) -> float:
+        """Engineering value of a parameter (for behaviour and tests)."""
+        p = self.profile.parameter(code)
+        with self.lock:
+            return p.from_raw(self._raw(p.index, p.subindex))
+
+    def _value_or(self, code: str, fallback: float) -> float:
+        try:
+            p = self.profile.parameter(code) if code else None
+        except ParameterError:
+            p = None
+        if p is None or p.index is None:
+            return fallback
+        return p.from_raw(self._raw(p.index, p.subindex)) or fallback
+
+    # --- dynamic objects ------------------------------------------------------------------
+
+    def _fault_register(self) -> int:
+        return 1 if self.fault_code else 0
+
+    def statusword(self) -> int:
+        if self.cia402:
+            word = STATUSWORD_OF[self.state] | 0x0200
+            if self.state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                              State.SWITCHED_ON, State.OPERATION_ENABLED):
+                word |= 0x0020
+            if self.state in (State.SWITCHED_ON, State.OPERATION_ENABLED,
+                              State.QUICK_STOP_ACTIVE):
+                word |= 0x0010
+            if self.state is State.OPERATION_ENABLED and \
+                    abs(self.speed_rpm - self._target_rpm()) < 1:
+                word |= 0x0400
+            return word
+        word = 0
+        if self.speed_rpm != 0 or (self.run_requested and not self.fault_code):
+            word |= 0x01
+        if self.speed_rpm < 0:
+            word |= 0x02
+        if self.run_requested and abs(self.speed_rpm - self._target_rpm()) < 1:
+            word |= 0x04
+        if self.fault_code:
+            word |= 0x80 | ((self.fault_code & 0xFF) << 8)
+        return word
+
+    def _dynamic(self, index: int, subindex: int) -> int | None:
+        """Live values (status, speed, fault code, ...) by object."""
+        key = (index, subindex)
+        if key == (0x1001, 0):
+            return self._fault_register()
+        if key == (self.objects.statusword.index, self.objects.statusword.subindex):
+            return self.statusword()
+        for role, obj in self.objects.monitor.items():
+            if (obj.index, obj.subindex) != key:
+                continue
+            if role == 'status_word':
+                return self.statusword()
+            if role == 'motor_speed':
+                return round(self.speed_rpm / obj.scale)
+            if role == 'fault_code':
+                return self.fault_code
+            if role == 'output_current':
+                load = abs(self.speed_rpm) / 3000.0
+                return round((2.0 + 8.0 * load if self.speed_rpm else 0.0) / obj.scale)
+            if role == 'dc_bus_voltage':
+                return round(48.0 / obj.scale)
+            return 0
+        if self.objects.mode_of_operation is not None and \
+                key == (self.objects.mode_of_operation.index + 1, 0):
+            mode = self.objects.mode_of_operation
+            return self._stored(mode.index, mode.subindex)   # 0x6061 follows 0x6060
+        return None
+
+    def _raw(self, index: int, subindex: int) -> int:
+        live = self._dynamic(index, subindex)
+        return live if live is not None else self._stored(index, subindex)
+
+    def _on_sdo_read(self, index: int, subindex: int, od: Any) -> int | None:
+        with self.lock:
+            return self._dynamic(index, subindex)
+
+    def _on_sdo_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        with self.lock:
+            raw = od.decode_raw(data)
+            self._check_value(index, subindex, raw)
+            self._apply_write(index, subindex, raw)
+
+    def _check_value(self, index: int, subindex: int, raw: int) -> None:
+        p = self.parameters.get((index, subindex))
+        if p is not None and (index, subindex) not in (
+                (self.objects.controlword.index, self.objects.controlword.subindex),):
+            value = p.from_raw(raw)
+            if p.minimum is not None and value < p.minimum - 1e-9:
+                raise SdoAbortedError(0x06090032)
+            if p.maximum is not None and value > p.maximum + 1e-9:
+                raise SdoAbortedError(0x06090031)
+            if p.options and raw not in p.options:
+                raise SdoAbortedError(0x06090030)
+        if 0x1800 <= index < 0x1800 + self.spec.tpdos or 0x1400 <= index < 0x1400 + \
+                self.spec.rpdos:
+            if subindex == 2 and raw not in (254, 255):
+                raise SdoAbortedError(0x06090030)      # asynchronous PDOs only
+        if (0x1A00 <= index < 0x1A00 + self.spec.tpdos or
+                0x1600 <= index < 0x1600 + self.spec.rpdos) and subindex and raw:
+            try:
+                self.node._find_object(raw >> 16, (raw >> 8) & 0xFF)   # noqa: SLF001
+            except SdoAbortedError:
+                raise SdoAbortedError(0x06040041) from None
+
+    def _apply_write(self, index: int, subindex: int, raw: int) -> None:
+        key = (index, subindex)
+        if key == (self.objects.controlword.index, self.objects.controlword.subindex):
+            self._on_controlword(raw)
+        elif key == (self.objects.target_velocity.index, self.objects.target_velocity.subindex):
+            self.target_raw = raw
+        elif key == (0x1017, 0):
+            self._last_heartbeat = 0.0
+
+    # --- behaviour --------------------------------------------------------------------------
+
+    def bus_control(self) -> bool:
+        """Obeys the bus only once the commissioning values are set (Kinco A0.04 = 2)."""
+        for item in self.profile.commissioning:
+            p = self.profile.parameter(item.code)
+            if p.index is not None and self._stored(p.index, p.subindex) != p.to_raw(item.value):
+                return False
+        return True
+
+    def _on_controlword(self, word: int) -> None:
+        previous, self.controlword = self.controlword, word
+        if self.cia402:
+            if word & ControlBit.FAULT_RESET and not previous & ControlBit.FAULT_RESET and \
+                    self.state is State.FAULT:
+                if self.fault_cause_present:
+                    return
+                self._clear_fault()
+            new = transition(self.state, word, previous)
+            if self.enable_blocked or not self.bus_control():
+                if new in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+                           State.OPERATION_ENABLED):
+                    new = State.SWITCH_ON_DISABLED if self.state is State.SWITCH_ON_DISABLED \
+                        else self.state
+            self.state = new
+            return
+        commands = self.objects.commands
+        if word & commands['fault_reset'] and word == commands['fault_reset']:
+            self.run_requested = False
+            if self.fault_code and not self.fault_cause_present:
+                self._clear_fault()
+        elif word == commands['run']:
+            if not self.fault_code and self.bus_control():
+                self.run_requested = True
+        else:
+            self.run_requested = False
+
+    def _clear_fault(self) -> None:
+        self.fault_code = 0
+        self.state = State.SWITCH_ON_DISABLED
+        self._emcy(0)
+
+    def inject_fault(self, code: int, subcode: int = 0, latched: bool = False) -> None:
+        """Raise a fault with an EMCY (code 0: the cause is gone, a reset will clear it)."""
+        with self.lock:
+            if code == 0:
+                self.fault_cause_present = False
+                return
+            self.fault_code = code
+            self.fault_cause_present = latched
+            self.run_requested = False
+            self.state = State.FAULT
+            self._emcy(code)
+
+    def _emcy(self, code: int) -> None:
+        if code == 0:
+            frame = (0, 0, bytes(5))
+        elif self.spec.emcy_fault is EmcyFault.MANUFACTURER_BYTE:
+            frame = (MANUFACTURER_EMCY, 0x01, bytes((code & 0xFF, 0, 0, 0, 0)))
+        else:
+            frame = (code, 0x01, bytes(5))
+        self.emcy_sent.append(frame)
+        if self.network is not None and not self.silent:
+            self.network.send_message(0x80 + self.node_id,
+                                      struct.pack('<HB', frame[0], frame[1]) + frame[2])
+
+    def _target_rpm(self) -> float:
+        return self.target_raw * self.objects.target_velocity.scale
+
+    def _rates(self) -> tuple[float, float, float]:
+        """(acceleration, deceleration, quick-stop deceleration) in rpm/s."""
+        if self.cia402 and self.profile.velocity.acceleration_time == '':
+            return (self._value_or('profile_acceleration', 3000.0),
+                    self._value_or('profile_deceleration', 3000.0),
+                    self._value_or('quick_stop_deceleration', 10000.0))
+        velocity = self.profile.velocity
+        rated = self._value_or(velocity.rated_speed, 3000.0)
+        accel = rated / max(self._value_or(velocity.acceleration_time, 0.5), 0.05)
+        decel = rated / max(self._value_or(velocity.deceleration_time, 0.5), 0.05)
+        return accel, decel, decel * 4
+
+    def tick(self) -> None:
+        with self.lock:
+            now = self._clock()
+            dt = max(0.0, min(now - self._last_tick, 0.5))
+            self._last_tick = now
+            self._nmt_housekeeping()
+            self._supervise_master(now)
+            if self.cia402:
+                running = self.state is State.OPERATION_ENABLED
+            else:
+                running = self.run_requested and not self.fault_code and self.bus_control()
+            target = self._target_rpm() if running else 0.0
+            accel, decel, quick = self._rates()
+            if self.state is State.QUICK_STOP_ACTIVE or self.fault_code:
+                rate = quick
+            else:
+                rate = accel if abs(target) > abs(self.speed_rpm) and \
+                    target * self.speed_rpm >= 0 else decel
+            step = rate * dt
+            delta = target - self.speed_rpm
+            self.speed_rpm = target if abs(delta) <= step else self.speed_rpm + (
+                step if delta > 0 else -step)
+            if self.state is State.QUICK_STOP_ACTIVE and self.speed_rpm == 0.0:
+                self.state = State.SWITCH_ON_DISABLED
+            if not self.silent and self.network is not None:
+                self._produce(now)
+
+    def _nmt_housekeeping(self) -> None:
+        if self.node.nmt.state == 'INITIALISING':      # after an NMT reset: boot-up sent
+            for index in list(self.node.data_store):
+                if index == 0x1017 or 0x1400 <= index <= 0x1BFF:
+                    del self.node.data_store[index]
+            self.state = State.SWITCH_ON_DISABLED
+            self.run_requested = False
+            self.target_raw = 0
+            self.node.nmt.state = 'PRE-OPERATIONAL'
+
+    def _supervise_master(self, now: float) -> None:
+        """Stop the motor when the master's RPDOs stop (0x1400:05) or NMT leaves Operational."""
+        moving = self.state is State.OPERATION_ENABLED if self.cia402 else self.run_requested
+        if not moving:
+            return
+        if self.node.nmt.state != 'OPERATIONAL':
+            self.state = State.QUICK_STOP_ACTIVE if self.cia402 else self.state
+            self.run_requested = False
+            return
+        deadline = self._stored(0x1400, 5) / 1000.0
+        if deadline > 0 and self._last_rpdo is not None and now - self._last_rpdo > deadline:
+            if self.cia402:
+                self.inject_fault(RPDO_TIMEOUT)
+            else:
+                self.run_requested = False
+
+    def _produce(self, now: float) -> None:
+        period = self._stored(0x1017, 0) / 1000.0
+        if period > 0 and now - self._last_heartbeat >= period:
+            self._last_heartbeat = now
+            self.network.send_message(0x700 + self.node_id, bytes((self.node.nmt._state,)))  # noqa: SLF001
+        if self.node.nmt.state != 'OPERATIONAL':
+            return
+        for number in range(self.spec.tpdos):
+            cob = self._stored(0x1800 + number, 1)
+            count = self._stored(0x1A00 + number, 0)
+            if cob & PDO_DISABLED or not count:
+                continue
+            value, shift = 0, 0
+            for sub in range(1, count + 1):
+                entry = self._stored(0x1A00 + number, sub)
+                bits = entry & 0xFF
+                raw = self._raw(entry >> 16, (entry >> 8) & 0xFF)
+                value |= (raw & ((1 << bits) - 1)) << shift
+                shift += bits
+            data = value.to_bytes((shift + 7) // 8, 'little')
+            timer = self._stored(0x1800 + number, 5) / 1000.0
+            last = self._tpdo_sent.get(number)
+            if last is None or last[0] != data or (timer > 0 and now - last[1] >= timer):
+                self._tpdo_sent[number] = (data, now)
+                self.network.send_message(cob & 0x7FF, data)
+
+    # --- frames from the bus ------------------------------------------------------------------
+
+    def attach(self, network: Any) -> None:
+        """Join ``network``: SDO, NMT and RPDOs pass through the silence gate."""
+        self.network = network
+        network.add_node(self.node)
+        network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
+        network.unsubscribe(0, self.node.nmt.on_command)
+        network.subscribe(self.node.sdo.rx_cobid, self._gate(self.node.sdo.on_request))
+        network.subscribe(0, self._gate(self.node.nmt.on_command))
+        for number in range(self.spec.rpdos):
+            network.subscribe(0x200 + 0x100 * number + self.node_id, self._on_rpdo)
+        self.node.nmt.state = 'PRE-OPERATIONAL'
+        network.send_message(0x700 + self.node_id, bytes((0,)))      # boot-up
+
+    def _gate(self, callback: Callable[..., None]) -> Callable[..., None]:
+        def gated(can_id: int, data: bytearray, timestamp: float) -> None:
+            if not self.silent:
+                callback(can_id, data, timestamp)
+        return gated
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.silent:
+            return
+        number = (can_id - self.node_id - 0x200) // 0x100
+        with self.lock:
+            if self.node.nmt.state != 'OPERATIONAL':
+                return
+            cob = self._stored(0x1400 + number, 1)
+            count = self._stored(0x1600 + number, 0)
+            if cob & PDO_DISABLED or not count:
+                return
+            value, shift = int.from_bytes(bytes(data), 'little'), 0
+            for sub in range(1, count + 1):
+                entry = self._stored(0x1600 + number, sub)
+                bits = entry & 0xFF
+                raw = (value >> shift) & ((1 << bits) - 1)
+                if raw >= 1 << (bits - 1) and self._signed(entry >> 16, (entry >> 8) & 0xFF):
+                    raw -= 1 << bits
+                shift += bits
+                self.node.data_store.setdefault(entry >> 16, {})[(entry >> 8) & 0xFF] = \
+                    self.node._find_object(entry >> 16, (entry >> 8) & 0xFF).encode_raw(raw)  # noqa: SLF001
+                self._apply_write(entry >> 16, (entry >> 8) & 0xFF, raw)
+            self.rpdos_received += 1
+            self._last_rpdo = self._clock()
+
+    def _signed(self, index: int, subindex: int) -> bool:
+        obj = self.node._find_object(index, subindex)   # noqa: SLF001
+        return obj.data_type in (od.INTEGER8, od.INTEGER16, od.INTEGER32)
+
+
+def _fmt(value_type: ValueType) -> str:
+    return {ValueType.UINT8: '<B', ValueType.INT8: '<b', ValueType.UINT16: '<H',
+            ValueType.INT16: '<h', ValueType.UINT32: '<I', ValueType.INT32: '<i'}[value_type]
+
+
+class SimulatedCanBus:
+    """Simulated drives on one CAN channel (python-can), ticked in turn by one thread."""
+
+    def __init__(self, drives: list[SimulatedCanopenDrive], channel: str,
+                 interface: str = 'virtual', period: float = 0.005) -> None:
+        ids = [d.node_id for d in drives]
+        if len(set(ids)) != len(ids):
+            raise ParameterError(f'node ids on one bus must differ: {ids}')
+        self.drives = drives
+        self.channel = channel
+        self.interface = interface
+        self.period = period
+        self.network: Any = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> 'SimulatedCanBus':
+        import can
+        self.network = canopen.Network(can.Bus(interface=self.interface, channel=self.channel))
+        self.network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
+        self.network.connect()
+        for drive in self.drives:
+            drive.attach(self.network)
+        self._thread = threading.Thread(target=self._run, name=f'sim can {self.channel}',
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            for drive in self.drives:     # fair: every drive every period, in turn
+                try:
+                    drive.tick()
+                except Exception:  # noqa: BLE001 - a bus error must not kill the twin
+                    if self._stop.is_set():
+                        return
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+            self._thread = None
+        if self.network is not None:
+            self.network.disconnect()
+            self.network = None
