@@ -38,3 +38,13 @@ def test_agv_demo_cmd_vel_moves_both_wheels_on_one_line_and_survives_an_unplug()
     assert 'offline' in output                       # the right drive, while unplugged
     assert 'reset_fault right_wheel: fault E35.03' in output
     assert 'both wheels followed the profile' in output
+
+
+def test_canopen_demo():
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    result = subprocess.run([shutil.which('demo'), '--canopen'], env=env, capture_output=True,
+                            text=True, timeout=90)
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    assert 'CiA 402 drives on a virtual CAN bus' in output
+    assert 'both wheels followed the profile' in output

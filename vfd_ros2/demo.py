@@ -12,6 +12,9 @@ and exits (0 if both wheels followed the profile).
                     launch): both drives on one RS-485 line behind one bus_node, driven
                     through /agv/cmd_vel by the diff_drive helper; halfway the right
                     drive is pulled off the line and plugged back
+  demo --canopen    the same profile as the default on two simulated CiA 402 drives on one
+                    CAN bus (python-can's in-process virtual bus, so the simulated drives
+                    and the drive nodes run in this process)
 """
 
 from __future__ import annotations
@@ -202,6 +205,36 @@ def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
     return followed
 
 
+def _start_canopen_wheels(wheels: list[str]) -> tuple[object, list[Node], object]:
+    """Start simulated CiA 402 drives on a virtual CAN bus and a drive node per wheel."""
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter as NodeParameter
+
+    from .node import DriveNode
+    from .profile import load_profile
+    from .sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+
+    profile = load_profile('cia402_velocity')
+    channel = f'vfd_demo_{os.getpid()}'
+    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in range(1, len(wheels) + 1)]
+    bus = SimulatedCanBus(sims, channel).start()
+    nodes = []
+    for node_id, wheel in enumerate(wheels, start=1):
+        settings = {'drive.profile': 'cia402_velocity', 'transport.type': 'canopen',
+                    'transport.interface': 'virtual', 'transport.channel': channel,
+                    'transport.unit_id': node_id, 'gear_ratio': 10.0,
+                    'invert_direction': node_id == 2, 'max_velocity': 5.0}
+        nodes.append(DriveNode('drive', namespace=f'/agv/{wheel}', parameter_overrides=[
+            NodeParameter(k, value=v) for k, v in settings.items()]))
+    executor = SingleThreadedExecutor()
+    for node in nodes:
+        executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    return bus, nodes, executor
+
+
 def _start_processes(specs: list[NodeSpec], workdir: Path) -> list[subprocess.Popen]:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     processes = []
@@ -238,6 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                         help='run the profile against already running nodes')
     parser.add_argument('--agv', action='store_true',
                         help='the bus topology with diff_drive, driven through cmd_vel')
+    parser.add_argument('--canopen', action='store_true',
+                        help='two simulated CiA 402 drives on one (virtual) CAN bus')
     args, ros_args = parser.parse_known_args(argv)
     if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
         print('demo: set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (scripts/demo does)')
@@ -245,7 +280,12 @@ def main(argv: list[str] | None = None) -> int:
     wheels = ['left_wheel', 'right_wheel']
     processes: list[subprocess.Popen] = []
     workdir = Path(tempfile.mkdtemp(prefix='vfd_demo_'))
-    if not args.attach:
+    rclpy.init(args=ros_args)
+    in_process = None
+    if args.canopen:
+        in_process = _start_canopen_wheels(wheels)
+        print('started 2 simulated CiA 402 drives on a virtual CAN bus and 2 drive nodes')
+    elif not args.attach:
         lines = str(workdir / 'lines')
         if args.agv:
             write_bus_file(sim_agv_bus(lines), lines)
@@ -254,7 +294,6 @@ def main(argv: list[str] | None = None) -> int:
             specs = sim_wheels(directory=lines)
         processes = _start_processes(specs, workdir)
         print(f'started {len(processes)} processes (logs in {workdir})')
-    rclpy.init(args=ros_args)
     commander = Commander(wheels)
     ok = False
     try:
@@ -280,6 +319,12 @@ def main(argv: list[str] | None = None) -> int:
         pass
     finally:
         commander.destroy_node()
+        if in_process is not None:
+            bus, nodes, executor = in_process
+            executor.shutdown(timeout_sec=1.0)
+            for node in nodes:
+                node.destroy_node()       # each drive is stopped before its bus closes
+            bus.stop()
         rclpy.try_shutdown()
         _stop_processes(processes)
     return 0 if ok else 1
