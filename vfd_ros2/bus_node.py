@@ -14,15 +14,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from .bus import Bus, BusStatistics, load_bus_config
-from .errors import VfdError
+from .executable import run_node
 from .messages import bus_diagnostic_name
 from .node import DriveNode
 
@@ -89,22 +87,5 @@ class BusNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = BusNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        for drive_node in node.drive_nodes:
-            executor.add_node(drive_node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except VfdError as exc:
-        print(f'bus_node: {exc}')
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('bus_node', BusNode, args,
+                    extra_nodes=lambda node: node.drive_nodes)

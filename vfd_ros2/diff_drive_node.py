@@ -30,12 +30,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import rclpy
 from geometry_msgs.msg import TransformStamped, Twist
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.time import Time
 from std_msgs.msg import Float64
@@ -43,7 +40,8 @@ from std_msgs.msg import Float64
 from vfd_ros2.msg import DriveStatus
 
 from .diff_drive import DiffDriveKinematics, OdometryIntegrator, RateLimiter, VelocityLimits
-from .errors import ParameterError, VfdError
+from .errors import ParameterError
+from .executable import run_node
 
 PARAMETERS: tuple[tuple[str, Any, str], ...] = (
     ('wheel_radius', 0.1, 'm, rolling radius of the drive wheels (> 0)'),
@@ -265,20 +263,4 @@ class DiffDriveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = DiffDriveNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (VfdError, ParameterException) as exc:
-        print(f'diff_drive: {exc}')
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('diff_drive', DiffDriveNode, args)

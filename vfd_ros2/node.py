@@ -23,10 +23,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -39,6 +37,7 @@ from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 from .config import SETTINGS, build_controller
 from .controller import CommandOutcome, DriveController
 from .errors import VfdError
+from .executable import run_node
 from .faults import NO_FAULT
 from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
 from .transports import load_transport_class
@@ -215,20 +214,4 @@ class DriveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = DriveNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except VfdError as exc:
-        print(f'drive_node: {exc}')
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('drive_node', DriveNode, args)

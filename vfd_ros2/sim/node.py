@@ -21,15 +21,14 @@ from __future__ import annotations
 
 from typing import Any
 
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from vfd_ros2.srv import InjectFault
 
 from ..errors import VfdError
+from ..executable import run_node
 from ..profile import load_profile
 from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
@@ -136,18 +135,4 @@ class SimDriveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimDriveNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (VfdError, ValueError) as exc:
-        print(f'sim_drive: {exc}')
-        return 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node('sim_drive', SimDriveNode, args)
