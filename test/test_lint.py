@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -19,7 +21,9 @@ def ruff_command() -> list[str]:
         pass
     beside = Path(sys.executable).with_name('ruff')
     found = str(beside) if beside.exists() else shutil.which('ruff')
-    assert found, 'ruff is not installed (it is pinned in requirements.txt)'
+    if not found:
+        # scripts/test always has it (requirements.txt); a ROS workspace may not.
+        pytest.skip('ruff is not installed (pip install ruff)')
     return [found]
 
 
