@@ -106,7 +106,9 @@ def test_both_drives_on_one_line_follow_their_commands(agv_bus):
                                   if 'bus rs485_0' in st.name), None), 3.0, 'bus diagnostics')
     values = {kv.key: kv.value for kv in diag.values}
     assert diag.level == DiagnosticStatus.OK and float(values['transactions/s']) > 50
-    assert 0.0 < float(values['wire utilisation (%)']) < 100.0
+    # The pty has no wire time (no baud-rate delay), so the share of a real 115200 bit/s
+    # line this traffic would need can exceed 100 %; it must be counted, not bounded here.
+    assert float(values['wire utilisation (%)']) > 0.0
 
 
 def test_a_dead_drive_does_not_stall_the_other(agv_bus):
@@ -166,3 +168,47 @@ def test_shipped_bus_config_is_valid():
     path = Path(__file__).resolve().parents[1] / 'config' / 'sim_agv_bus.yaml'
     config = parse_bus_config(yaml.safe_load(path.read_text()))
     assert [d.namespace for d in config.drives] == ['/agv/left_wheel', '/agv/right_wheel']
+
+
+def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
+    """bus_node's Bus on CANopen: one thread serves every node; a dead node stalls nobody."""
+    from vfd_ros2.bus import Bus
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    profile = load_profile('cia402_velocity')
+    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
+    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)]
+    with_bus = SimulatedCanBus(sims, channel).start()
+    config = parse_bus_config({
+        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
+                'transport.channel': channel, 'control_rate': 50.0},
+        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
+                             'gear_ratio': 10.0, 'auto_enable': True} for n in (1, 2)}})
+    bus = Bus(config)
+    assert len(bus.transports) == 2            # one CAN handle per node, one thread
+    bus.start()
+    try:
+        first, second = bus.controllers['n1'], bus.controllers['n2']
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not (
+                abs(first.state.measured_velocity - 1.0) < 0.05 and
+                abs(second.state.measured_velocity + 0.5) < 0.05):
+            first.command_velocity(1.0)
+            second.command_velocity(-0.5)
+            time.sleep(0.05)
+        assert abs(first.state.measured_velocity - 1.0) < 0.05
+        assert abs(second.state.measured_velocity + 0.5) < 0.05
+        sims[1].silent = True                   # node 2 dies
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and second.state.online:
+            first.command_velocity(2.0)
+            time.sleep(0.05)
+        assert not second.state.online
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and abs(first.state.measured_velocity - 2.0) > 0.05:
+            first.command_velocity(2.0)
+            time.sleep(0.05)
+        assert first.state.online and abs(first.state.measured_velocity - 2.0) < 0.05
+        assert bus.statistics().utilisation is None    # not a serial line
+    finally:
+        bus.shutdown()
+        with_bus.stop()

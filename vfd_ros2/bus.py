@@ -19,7 +19,7 @@ import yaml
 from .config import SETTINGS, build_controller
 from .controller import CycleLoop, DriveController
 from .errors import ParameterError
-from .transports.base import Transport
+from .transports.base import Transport, TransportStats
 
 #: settings that belong to the bus, not to one drive
 BUS_KEYS = ('control_rate',)
@@ -92,7 +92,13 @@ def load_bus_config(path: str) -> BusConfig:
 
 
 class Bus:
-    """One transport, several drive controllers, one thread."""
+    """One link, several drive controllers, one thread.
+
+    Register transports (Modbus) are one port shared by every drive. A transport
+    that addresses one device per handle (``shared_by_drives = False``, e.g.
+    CANopen: one python-can handle per node on the same interface) gets one
+    handle per drive, still served by this one thread and process.
+    """
 
     def __init__(self, config: BusConfig, clock: Callable[[], float] = time.monotonic) -> None:
         self.config = config
@@ -100,11 +106,16 @@ class Bus:
         self.controllers: dict[str, DriveController] = {}
         first = build_controller({**config.settings, **config.drives[0].settings})
         self.transport: Transport = first.drive.transport
-        first.drive.owns_transport = False
         self.controllers[config.drives[0].key] = first
+        shared = type(self.transport).shared_by_drives
+        if shared:
+            first.drive.owns_transport = False
         for entry in config.drives[1:]:
             self.controllers[entry.key] = build_controller(
-                {**config.settings, **entry.settings}, transport=self.transport)
+                {**config.settings, **entry.settings},
+                transport=self.transport if shared else None)
+        self.transports = list({id(c.drive.transport): c.drive.transport
+                                for c in self.controllers.values()}.values())
         rate = float(config.settings.get('control_rate', 50.0))
         self.period = 1.0 / rate
         self._loop: CycleLoop | None = None
@@ -122,7 +133,8 @@ class Bus:
     def finish(self) -> None:
         for controller in self.controllers.values():
             controller.finish()
-        self.transport.close()
+        for transport in self.transports:
+            transport.close()
 
     def start(self) -> None:
         if self._loop is None:
@@ -137,7 +149,9 @@ class Bus:
 
     def statistics(self) -> BusStatistics:
         """Figures since the previous call (transactions/s, wire utilisation)."""
-        stats = self.transport.stats
+        all_stats = [t.stats for t in self.transports]
+        stats = TransportStats(**{name: sum(getattr(s, name) for s in all_stats)
+                                  for name in TransportStats.__dataclass_fields__})
         now = self._clock()
         with self._lock:
             then, before = self._window

@@ -49,6 +49,8 @@ class Transport(abc.ABC):
     parameters: ClassVar[tuple[TransportParameter, ...]] = ()
     #: "module:Class" of the drive implementation for this transport
     drive_class: ClassVar[str] = 'vfd_ros2.drive:ModbusDrive'
+    #: can several drives share one instance (one port, many slave ids)?
+    shared_by_drives: ClassVar[bool] = True
 
     def __init__(self) -> None:
         self.stats = TransportStats()

@@ -162,6 +162,7 @@ class CanopenTransport(Transport):
                            'it is reported as stuck'),
     )
     drive_class = 'vfd_ros2.canopen_drive:CanopenDrive'
+    shared_by_drives = False   # one handle per node; bus_node opens one per drive
 
     def __init__(self, interface: str = 'virtual', channel: str = 'vcan0', bitrate: int = 0,
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
