@@ -163,9 +163,10 @@ def test_bus_file_is_validated():
         parse_bus_config(misplaced)
 
 
-def test_shipped_bus_config_is_valid():
+@pytest.mark.parametrize('name', ['sim_agv_bus.yaml', 'canopen_bus.yaml'])
+def test_shipped_bus_config_is_valid(name):
     from pathlib import Path
-    path = Path(__file__).resolve().parents[1] / 'config' / 'sim_agv_bus.yaml'
+    path = Path(__file__).resolve().parents[1] / 'config' / name
     config = parse_bus_config(yaml.safe_load(path.read_text()))
     assert [d.namespace for d in config.drives] == ['/agv/left_wheel', '/agv/right_wheel']
 
