@@ -137,6 +137,9 @@ def test_drive_that_cannot_be_enabled_is_reported(make_can_harness):
     words = dict(zip(status.status_word_names, status.status_words_raw))
     assert words['cia402_state'] == State.SWITCH_ON_DISABLED
     assert sim.speed_rpm == 0.0
+    # The status says why the wheel does not move.
+    status = wheel.wait_status(lambda s: s.state == 'blocked', 3.0, 'blocked state')
+    assert 'SWITCH_ON_DISABLED' in status.stop_reason or 'stays in' in status.stop_reason
 
 
 @pytest.mark.parametrize('object_set', ['manufacturer', 'ds402'])

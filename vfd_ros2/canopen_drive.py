@@ -343,7 +343,7 @@ class CanopenDrive:
                         self._emcy_fault.display, self._emcy_fault.name)
 
     def _reading(self) -> Reading:
-        reading = Reading()
+        reading = Reading(problem=self.stuck)
         monitor = self.objects.monitor
         for role, raw in self._values.items():
             obj = monitor[role]

@@ -495,6 +495,8 @@ class DriveController:
             return 'disabled', 'disabled: call ~/enable', False
         if self._stopped:
             return 'stopped', 'stopped by ~/stop: call ~/enable to resume', False
+        if reading.problem:
+            return 'blocked', reading.problem, False
         if wdg_expired:
             age = 'none received' if math.isinf(wdg_age) else f'last {wdg_age:.2f} s ago'
             return ('watchdog', f'no velocity command within command_timeout '

@@ -34,6 +34,9 @@ class Reading:
     warning_code: int = 0
     warning_subcode: int = 0
     measured_velocity: float = math.nan
+    # Why the drive does not do what it is told, as far as the drive layer knows
+    # (e.g. a CiA 402 drive stuck before Operation Enabled); '' when nothing.
+    problem: str = ''
 
 
 @dataclass(frozen=True)
