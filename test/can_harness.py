@@ -8,27 +8,22 @@ The CAN variant of ``harness.py``: every frame crosses python-can's in-process
 from __future__ import annotations
 
 import threading
-import time
 import uuid
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile
-from std_msgs.msg import Float64
-from std_srvs.srv import Trigger
 
-from harness import wait_for
-from vfd_ros2.msg import DriveFault, DriveStatus
+from harness import DriveClient
 from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 
 
-class CanWheel:
+class CanWheel(DriveClient):
     """One DriveNode plus the tester's view of it."""
 
     def __init__(self, harness: 'CanHarness', node_id: int, parameters: dict[str, Any]) -> None:
@@ -38,62 +33,7 @@ class CanWheel:
         self.node = DriveNode('drive', namespace=self.namespace, context=harness.context,
                               parameter_overrides=[Parameter(k, value=v)
                                                    for k, v in parameters.items()])
-        tester = harness.tester
-        self.statuses: list[DriveStatus] = []
-        self.faults: list[DriveFault] = []
-        tester.create_subscription(DriveStatus, f'{self.namespace}/drive/status',
-                                   self.statuses.append, 50)
-        tester.create_subscription(
-            DriveFault, f'{self.namespace}/drive/fault', self.faults.append,
-            QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.velocity_pub = tester.create_publisher(
-            Float64, f'{self.namespace}/drive/velocity_command', 10)
-        self._streaming = threading.Event()
-        self._streamer: threading.Thread | None = None
-        self._stream_value = 0.0
-
-    @property
-    def status(self) -> DriveStatus | None:
-        return self.statuses[-1] if self.statuses else None
-
-    def wait_status(self, predicate: Callable[[DriveStatus], bool], timeout: float = 5.0,
-                    what: str = 'status') -> DriveStatus:
-        def check():
-            status = self.status
-            return status if status is not None and predicate(status) else None
-        return wait_for(check, timeout, f'{what} (node {self.node_id})')
-
-    def stream(self, velocity: float, period: float = 0.05) -> None:
-        self._stream_value = velocity
-        if self._streamer is None:
-            self._streaming.set()
-            self._streamer = threading.Thread(target=self._stream_loop, args=(period,),
-                                              daemon=True)
-            self._streamer.start()
-
-    def _stream_loop(self, period: float) -> None:
-        while self._streaming.is_set() and self.harness.context.ok():
-            self.velocity_pub.publish(Float64(data=self._stream_value))
-            time.sleep(period)
-
-    def stop_stream(self) -> None:
-        self._streaming.clear()
-        if self._streamer is not None:
-            self._streamer.join(1.0)
-            self._streamer = None
-
-    def call(self, srv_type: Any, name: str, request: Any, timeout: float = 10.0) -> Any:
-        client = self.harness.tester.create_client(srv_type, f'{self.namespace}/drive/{name}')
-        try:
-            assert client.wait_for_service(timeout_sec=5.0), f'service {name} not available'
-            future = client.call_async(request)
-            wait_for(future.done, timeout, f'reply of {name}')
-            return future.result()
-        finally:
-            self.harness.tester.destroy_client(client)
-
-    def trigger(self, name: str) -> Trigger.Response:
-        return self.call(Trigger, name, Trigger.Request())
+        super().__init__(harness.context, harness.tester, f'{self.namespace}/drive')
 
 
 class CanHarness:

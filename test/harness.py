@@ -43,63 +43,24 @@ def wait_for(condition: Callable[[], Any], timeout: float = 5.0, what: str = 'co
         time.sleep(period)
 
 
-class DriveHarness:
-    """A simulated drive + DriveNode + a tester node, spinning in a thread."""
+class DriveClient:
+    """The tester's side of one drive node: its topics and services."""
 
-    def __init__(self, context: Context, port: str, profile: str = 'boneng_am',
-                 sim_initial: dict[str, float] | None = None,
-                 node_parameters: dict[str, Any] | None = None) -> None:
+    def __init__(self, context: Context, tester: Node, drive: str) -> None:
+        """Subscribe and publish on ``drive``'s topics (e.g. 'drive' or '/ns/drive')."""
         self.context = context
-        self.profile = load_profile(profile)
-        velocity = self.profile.velocity
-        initial = {code: 0.5 for code in (velocity.acceleration_time, velocity.deceleration_time)
-                   if code}
-        initial.update(sim_initial or {})
-        self.sim = SimulatedDrive(self.profile, 1, initial)
-        self.transport = self.profile.transports[0]
-        if self.transport == 'modbus_tcp':
-            self.line = SimulatedTcpServer([self.sim]).start()
-            link = {'transport.host': '127.0.0.1', 'transport.port': self.line.port}
-        else:
-            self.line = SimulatedRtuLine([self.sim], port).start()
-            link = {'transport.port': port}
-        self.namespace = f'/t{uuid.uuid4().hex[:8]}/wheel'
-        parameters = {
-            'drive.profile': profile, 'transport.type': self.transport, **link,
-            'transport.unit_id': 1, 'gear_ratio': 10.0, 'status_rate': 50.0,
-            'diagnostics_rate': 5.0, 'stop_timeout': 3.0, 'command_timeout': 0.5,
-        }
-        parameters.update(node_parameters or {})
-        self.node = DriveNode('drive', namespace=self.namespace, context=context,
-                              parameter_overrides=[Parameter(k, value=v)
-                                                   for k, v in parameters.items()])
-        self.tester = Node('tester', namespace=self.namespace, context=context)
+        self.tester = tester
+        self.drive_topics = drive
         self.statuses: list[DriveStatus] = []
         self.faults: list[DriveFault] = []
-        self.tester.create_subscription(DriveStatus, 'drive/status', self.statuses.append, 50)
-        self.tester.create_subscription(
-            DriveFault, 'drive/fault', self.faults.append,
+        tester.create_subscription(DriveStatus, f'{drive}/status', self.statuses.append, 50)
+        tester.create_subscription(
+            DriveFault, f'{drive}/fault', self.faults.append,
             QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.velocity_pub = self.tester.create_publisher(Float64, 'drive/velocity_command', 10)
-        self.executor = SingleThreadedExecutor(context=context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.tester)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
+        self.velocity_pub = tester.create_publisher(Float64, f'{drive}/velocity_command', 10)
         self._streaming = threading.Event()
         self._stream_value = 0.0
         self._streamer: threading.Thread | None = None
-
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down under us
-                if not self.context.ok():
-                    return
-                raise
-
-    # --- observing --------------------------------------------------------------
 
     @property
     def status(self) -> DriveStatus | None:
@@ -110,12 +71,7 @@ class DriveHarness:
         def check():
             status = self.status
             return status if status is not None and predicate(status) else None
-        return wait_for(check, timeout, what)
-
-    def frames_after(self, since: float) -> list[bytes]:
-        return [frame for stamp, frame in list(self.line.received) if stamp >= since]
-
-    # --- acting -------------------------------------------------------------------
+        return wait_for(check, timeout, f'{what} ({self.drive_topics})')
 
     def publish(self, velocity: float) -> None:
         self.velocity_pub.publish(Float64(data=velocity))
@@ -141,7 +97,7 @@ class DriveHarness:
             self._streamer = None
 
     def call(self, srv_type: Any, name: str, request: Any, timeout: float = 10.0) -> Any:
-        client = self.tester.create_client(srv_type, f'drive/{name}')
+        client = self.tester.create_client(srv_type, f'{self.drive_topics}/{name}')
         try:
             assert client.wait_for_service(timeout_sec=5.0), f'service {name} not available'
             future = client.call_async(request)
@@ -152,6 +108,56 @@ class DriveHarness:
 
     def trigger(self, name: str) -> Trigger.Response:
         return self.call(Trigger, name, Trigger.Request())
+
+
+class DriveHarness(DriveClient):
+    """A simulated drive + DriveNode + a tester node (the DriveClient), spinning in a thread."""
+
+    def __init__(self, context: Context, port: str, profile: str = 'boneng_am',
+                 sim_initial: dict[str, float] | None = None,
+                 node_parameters: dict[str, Any] | None = None) -> None:
+        self.profile = load_profile(profile)
+        velocity = self.profile.velocity
+        initial = {code: 0.5 for code in (velocity.acceleration_time, velocity.deceleration_time)
+                   if code}
+        initial.update(sim_initial or {})
+        self.sim = SimulatedDrive(self.profile, 1, initial)
+        self.transport = self.profile.transports[0]
+        if self.transport == 'modbus_tcp':
+            self.line = SimulatedTcpServer([self.sim]).start()
+            link = {'transport.host': '127.0.0.1', 'transport.port': self.line.port}
+        else:
+            self.line = SimulatedRtuLine([self.sim], port).start()
+            link = {'transport.port': port}
+        self.namespace = f'/t{uuid.uuid4().hex[:8]}/wheel'
+        parameters = {
+            'drive.profile': profile, 'transport.type': self.transport, **link,
+            'transport.unit_id': 1, 'gear_ratio': 10.0, 'status_rate': 50.0,
+            'diagnostics_rate': 5.0, 'stop_timeout': 3.0, 'command_timeout': 0.5,
+        }
+        parameters.update(node_parameters or {})
+        self.node = DriveNode('drive', namespace=self.namespace, context=context,
+                              parameter_overrides=[Parameter(k, value=v)
+                                                   for k, v in parameters.items()])
+        super().__init__(context, Node('tester', namespace=self.namespace, context=context),
+                         'drive')
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.tester)
+        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
+        self._spin.start()
+
+    def _spin_loop(self) -> None:
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - context shut down under us
+                if not self.context.ok():
+                    return
+                raise
+
+    def frames_after(self, since: float) -> list[bytes]:
+        return [frame for stamp, frame in list(self.line.received) if stamp >= since]
 
     def close(self) -> None:
         self.stop_stream()
