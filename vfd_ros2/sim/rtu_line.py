@@ -6,6 +6,23 @@ stable symlink (e.g. ``/tmp/vfd_sim/line0``) exactly as it would open
 hunting over garbage) and answered with pymodbus PDUs, so every byte on the
 line is real Modbus RTU. Faults of the line itself can be injected: replies
 corrupted at a rate, drives that stop answering, and wire time at the baud rate.
+
+Wire-time emulation (``emulate_wire_time``) makes the pseudo-terminal, which
+has no baud rate, behave like an RS-485 line at ``baudrate``:
+
+- a request occupies the wire for len x character time from the moment its
+  bytes are written (the master's UART starts sending at once), and is taken
+  as complete only at its last byte (``received`` stamps = that moment);
+- the drive answers no earlier than t3.5 after the request's last byte (it
+  detects the end of a frame by that silence; ``rtu_timing.frame_gap``: 3.5
+  characters, 1.75 ms above 19200 baud) plus its own ``response_delay``;
+- the reply's bytes are handed to the pty as each would finish on the wire
+  (byte i at reply start + (i + 1) x character time; grouped at most every
+  0.3 ms like a UART's receive FIFO; never earlier, late by the scheduler's
+  wake-up at most), so a master sees it grow at the baud rate and its last
+  byte at the true end of the frame;
+- a request that starts less than t3.5 after the previous reply ended is
+  served but counted (``stats.gap_violations``): a real slave may merge it.
 """
 
 from __future__ import annotations
@@ -24,6 +41,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
+from ..rtu_timing import character_time, frame_gap, tighten_timer_slack
 from .dispatch import answer
 from .model import SimulatedDrive
 
@@ -35,11 +53,24 @@ class LineStats:
     crc_errors: int = 0      # requests dropped for a bad CRC or garbage
     corrupted_replies: int = 0
     ignored: int = 0         # requests for absent or silent drives
+    gap_violations: int = 0  # requests that began < t3.5 after the previous reply (emulated)
 
 
-def character_time(baudrate: int, parity: str = 'N', stopbits: int = 1) -> float:
-    """Seconds per character on the wire (start + 8 data + parity + stop bits)."""
-    return (1 + 8 + (0 if parity.upper() == 'N' else 1) + stopbits) / baudrate
+@dataclass(frozen=True)
+class Exchange:
+    """One request on the emulated wire (times: time.monotonic())."""
+
+    request_start: float
+    request_end: float
+    request: bytes
+    reply_bytes: int         # 0: no reply
+    reply_end: float
+
+
+#: hand reply bytes over at most this often (a UART's receive FIFO also batches)
+_CHUNK = 0.0003
+
+__all__ = ['Exchange', 'LineStats', 'SimulatedRtuLine', 'character_time']
 
 
 class SimulatedRtuLine:
@@ -48,11 +79,20 @@ class SimulatedRtuLine:
     def __init__(self, drives: list[SimulatedDrive], link_path: str | Path,
                  baudrate: int = 115200, parity: str = 'N', stopbits: int = 1,
                  emulate_wire_time: bool = False, corrupt_rate: float = 0.0,
-                 tick_period: float = 0.005, seed: int | None = None) -> None:
+                 tick_period: float = 0.005, seed: int | None = None,
+                 response_delay: float = 0.0) -> None:
         self.drives = {drive.unit_id: drive for drive in drives}
         self.link_path = Path(link_path)
+        self.baudrate = baudrate
         self.char_time = character_time(baudrate, parity, stopbits)
+        self.gap = frame_gap(baudrate, self.char_time)
+        self.response_delay = response_delay
         self.emulate_wire_time = emulate_wire_time
+        #: emulated exchanges, newest last (only with emulate_wire_time)
+        self.exchanges: collections.deque[Exchange] = collections.deque(maxlen=20000)
+        self._wire_free = 0.0         # emulated: when the line's last byte ends
+        self._last_reply_end = -1.0
+        self._request_start: float | None = None
         self.corrupt_rate = corrupt_rate
         self.tick_period = tick_period
         self.stats = LineStats()
@@ -105,6 +145,7 @@ class SimulatedRtuLine:
     # --- serving --------------------------------------------------------------------
 
     def _serve(self) -> None:
+        tighten_timer_slack()
         buffer = b''
         last_byte = time.monotonic()
         silence = max(3.5 * self.char_time, 0.002)
@@ -120,6 +161,11 @@ class SimulatedRtuLine:
                 except OSError:
                     chunk = b''
                 if chunk:
+                    if self.emulate_wire_time:
+                        start = max(now, self._wire_free)
+                        if not buffer:
+                            self._request_start = start
+                        self._wire_free = start + len(chunk) * self.char_time
                     buffer += chunk
                     last_byte = now
             buffer = self._consume(buffer)
@@ -143,11 +189,56 @@ class SimulatedRtuLine:
                 return buffer[used:]
             request, buffer = buffer[:used], buffer[used:]
             self.stats.frames += 1
+            if self.emulate_wire_time:
+                self._emulate(request, pdu)
+                continue
             self.received.append((time.monotonic(), request))
             reply = self._answer(pdu)
             if reply is not None:
-                self._send(request, reply)
+                self._send(reply)
         return buffer
+
+    def _emulate(self, request: bytes, pdu: ModbusPDU) -> None:
+        """Answer ``request`` in wire time (see the module docstring)."""
+        end = self._wire_free
+        start = self._request_start if self._request_start is not None else \
+            end - len(request) * self.char_time
+        self._request_start = None
+        if self._last_reply_end >= 0 and start < self._last_reply_end + self.gap - 1e-6:
+            self.stats.gap_violations += 1
+        self._wait_until(end)
+        self.received.append((end, request))
+        reply = self._answer(pdu)
+        if reply is None:
+            self.exchanges.append(Exchange(start, end, request, 0, end))
+            return
+        reply = self._maybe_corrupt(reply)
+        reply_start = end + self.gap + self.response_delay
+        reply_end = reply_start + len(reply) * self.char_time
+        written = 0
+        while written < len(reply):
+            # Wake for the next byte's end on the wire (at most every _CHUNK), then
+            # hand over every byte that has finished by now: never one too early.
+            due_next = reply_start + (written + 1) * self.char_time
+            self._wait_until(min(max(due_next, time.monotonic() + _CHUNK), reply_end))
+            due = min(len(reply), int((time.monotonic() - reply_start) / self.char_time))
+            if due <= written:
+                continue
+            try:
+                os.write(self._master_fd, reply[written:due])
+            except OSError:
+                return
+            written = due
+        self._wire_free = self._last_reply_end = reply_end
+        self.stats.replies += 1
+        self.exchanges.append(Exchange(start, end, request, len(reply), reply_end))
+
+    @staticmethod
+    def _wait_until(moment: float) -> None:
+        # Sleep, never spin: a spinning process delays the kernel worker that moves
+        # pty data, which would delay the very bytes being timed.
+        while (remaining := moment - time.monotonic()) > 0:
+            time.sleep(remaining)
 
     def _answer(self, request: ModbusPDU) -> bytes | None:
         reply = answer(self.drives, request)
@@ -156,13 +247,14 @@ class SimulatedRtuLine:
             return None
         return self._framer.buildFrame(reply)
 
-    def _send(self, request: bytes, reply: bytes) -> None:
+    def _maybe_corrupt(self, reply: bytes) -> bytes:
         if self.corrupt_rate and self._random.random() < self.corrupt_rate:
-            reply = self._corrupt(reply)
             self.stats.corrupted_replies += 1
-        if self.emulate_wire_time:
-            # The request took len*char to arrive, then a 3.5-char gap, then the reply.
-            time.sleep((len(request) + 3.5 + len(reply)) * self.char_time)
+            return self._corrupt(reply)
+        return reply
+
+    def _send(self, reply: bytes) -> None:
+        reply = self._maybe_corrupt(reply)
         try:
             os.write(self._master_fd, reply)
             self.stats.replies += 1

@@ -1,0 +1,1 @@
+"""The vfd_ros2 benchmark (``scripts/bench``; see bench/run.py)."""

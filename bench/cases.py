@@ -1,0 +1,628 @@
+"""The benchmark's cases; each returns a plain dict (rows of the JSON file).
+
+Times are ``time.monotonic()`` (CLOCK_MONOTONIC, shared by every process on
+the machine), so the simulator's wire records and the driver's publish times
+compare directly. The simulator always runs in its own process.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import rclpy
+import yaml
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64
+
+from vfd_ros2.bus import Bus, parse_bus_config
+from vfd_ros2.config import build_controller
+from vfd_ros2.msg import DriveStatus
+from vfd_ros2.node import DriveNode
+from vfd_ros2.profile import Profile, load_profile
+from vfd_ros2.rtu_timing import character_time, frame_gap, reply_size, transaction_time
+from vfd_ros2.transports.modbus import ModbusRtuTransport, PymodbusRtuTransport
+
+from .simproc import SimProcess, wait_port
+
+#: written to each drive's own comm-loss timeout: at 9600 baud four drives' cycle
+#: exceeds the node's default 0.3 s, and the drive would (rightly) trip on it
+DRIVE_COMM_TIMEOUT = 5.0
+
+STACKS = {'vfd_ros2': ModbusRtuTransport, 'pymodbus': PymodbusRtuTransport}
+
+
+def _percentile(values: list[float], fraction: float) -> float:
+    ordered = sorted(values)
+    if not ordered:
+        return math.nan
+    return ordered[min(len(ordered) - 1, math.ceil(fraction * len(ordered)) - 1)]
+
+
+def _port_path(tag: str) -> str:
+    base = Path(tempfile.gettempdir()) / 'vfd_ros2_bench'
+    base.mkdir(parents=True, exist_ok=True)
+    return str(base / f'{tag}-{uuid.uuid4().hex[:6]}')
+
+
+def wait_for(condition: Callable[[], Any], timeout: float, what: str) -> Any:
+    deadline = time.monotonic() + timeout
+    while True:
+        result = condition()
+        if result:
+            return result
+        if time.monotonic() > deadline:
+            raise RuntimeError(f'timed out after {timeout} s waiting for {what}')
+        time.sleep(0.02)
+
+
+# --- wire arithmetic ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Framing:
+    baudrate: int
+    parity: str = 'N'
+    stopbits: int = 1
+
+    @property
+    def name(self) -> str:
+        return f'8{self.parity}{self.stopbits}'
+
+    @property
+    def char(self) -> float:
+        return character_time(self.baudrate, self.parity, self.stopbits)
+
+    @property
+    def gap(self) -> float:
+        return frame_gap(self.baudrate, self.char)
+
+    def exchange_time(self, request: bytes, reply_bytes: int) -> float:
+        return transaction_time(len(request), reply_bytes, self.char, self.gap)
+
+
+def static_cycle_time(profile: Profile, framing: Framing) -> float:
+    """Wire time of one drive's steady cycle from the profile alone.
+
+    Setpoint write (FC06, or FC16 for 32-bit setpoints) + every planned status
+    read, a block polled every N cycles weighted 1/N; run commands are written
+    only on change and do not count.
+    """
+    controller = build_controller({'drive.profile': profile.name, 'transport.port': '/dev/null'})
+    drive = controller.drive
+    setpoint = profile.parameter(profile.velocity.setpoint)
+    if setpoint.register_count == 1 and 6 in profile.modbus.function_codes:
+        total = transaction_time(8, reply_size(6), framing.char, framing.gap)
+    else:
+        total = transaction_time(9 + 2 * setpoint.register_count, reply_size(16),
+                                 framing.char, framing.gap)
+    for block in drive.blocks:
+        every = drive._block_every[block]      # noqa: SLF001 - the bench reads the plan
+        total += transaction_time(8, reply_size(3, block.count), framing.char,
+                                  framing.gap) / every
+    return total
+
+
+# --- drive nodes in this process (a Bus: one thread owns the line) --------------------
+
+
+class NodeBus:
+    """N drive nodes on one link, exactly as bus_node builds them, spinning in a thread."""
+
+    def __init__(self, profile: str, units: int, link: dict[str, Any], control_rate: float,
+                 stack: str = 'vfd_ros2', frame_gap_s: float | None = None,
+                 status_rate: float = 20.0) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.tag = f'b{uuid.uuid4().hex[:6]}'
+        drives = {f'd{u}': {'namespace': f'/{self.tag}/d{u}', 'drive.profile': profile,
+                            'transport.unit_id': u, 'gear_ratio': 10.0, 'auto_enable': True,
+                            'status_rate': status_rate, 'diagnostics_rate': 1.0,
+                            'command_timeout': 0.5, 'drive_comm_timeout': DRIVE_COMM_TIMEOUT}
+                  for u in range(1, units + 1)}
+        config = parse_bus_config({'bus': {'name': self.tag, **link,
+                                           'control_rate': control_rate}, 'drives': drives})
+        self.bus = Bus(config)
+        if link.get('transport.type', 'modbus_rtu') == 'modbus_rtu' and \
+                (stack != 'vfd_ros2' or frame_gap_s is not None):
+            self._swap_transport(stack, frame_gap_s)
+        self.nodes = []
+        for entry in config.drives:
+            values = {**config.settings, **entry.settings}
+            self.nodes.append(DriveNode(
+                entry.name, controller=self.bus.controllers[entry.key],
+                namespace=entry.namespace, context=self.context, use_global_arguments=False,
+                parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+        self.tester = Node('bench_tester', namespace=f'/{self.tag}', context=self.context)
+        self.publishers = [self.tester.create_publisher(Float64, f'd{u}/drive/velocity_command',
+                                                        10) for u in range(1, units + 1)]
+        self.executor = SingleThreadedExecutor(context=self.context)
+        for node in [*self.nodes, self.tester]:
+            self.executor.add_node(node)
+        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
+        self._spin.start()
+        self.bus.start()
+
+    def _swap_transport(self, stack: str, frame_gap_s: float | None) -> None:
+        old = self.bus.transport
+        kwargs = dict(port=old.port, baudrate=old.baudrate, parity=old.parity,
+                      stopbits=old.stopbits, bytesize=old.bytesize, timeout=old.timeout)
+        if stack == 'vfd_ros2':
+            new = ModbusRtuTransport(**kwargs, frame_gap=frame_gap_s)
+        else:
+            new = PymodbusRtuTransport(**kwargs)
+        self.bus.transport = new
+        for controller in self.bus.controllers.values():
+            controller.drive.transport = new
+
+    def _spin_loop(self) -> None:
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - context shut down under us
+                if not self.context.ok():
+                    return
+                raise
+
+    @property
+    def controllers(self) -> list[Any]:
+        return list(self.bus.controllers.values())
+
+    def cycles(self) -> int:
+        return min(c._cycle for c in self.controllers)   # noqa: SLF001
+
+    def publish_all(self, velocity: float) -> None:
+        for publisher in self.publishers:
+            publisher.publish(Float64(data=velocity))
+
+    def wait_online(self, timeout: float = 30.0) -> None:
+        def ready() -> bool:
+            self.publish_all(1.0)
+            return all(c.state.online and c.state.state == 'running' for c in self.controllers)
+        wait_for(ready, timeout, 'drives online and running')
+
+    def close(self) -> None:
+        self.bus.shutdown()
+        for node in [*self.nodes, self.tester]:
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=self.context)
+
+
+class Streamer:
+    """Publishes velocity commands to every drive at ``rate`` Hz (a planner)."""
+
+    def __init__(self, bus: NodeBus, rate: float, velocity: float = 1.0) -> None:
+        self._bus, self._period, self.velocity = bus, 1.0 / rate, velocity
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_time = time.monotonic()
+        while not self._stop.is_set():
+            self._bus.publish_all(self.velocity)
+            next_time += self._period
+            self._stop.wait(max(0.0, next_time - time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+
+
+# --- 1. bus efficiency ----------------------------------------------------------------
+
+
+def bus_efficiency(profile_name: str, units: int, framing: Framing, window: float,
+                   stack: str = 'vfd_ros2') -> dict[str, Any]:
+    """Back-to-back command+status cycles on an emulated line vs the wire's limit."""
+    profile = load_profile(profile_name)
+    setpoint = profile.parameter(profile.velocity.setpoint).address
+    port = _port_path('eff')
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, framing.baudrate,
+                    framing.parity, framing.stopbits, emulate=True) as sim:
+        wait_port(port)
+        link = {'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
+                'transport.stopbits': framing.stopbits, 'transport.timeout': 0.5}
+        bus = NodeBus(profile_name, units, link, control_rate=10000.0, stack=stack)
+        streamer = Streamer(bus, 50.0)
+        try:
+            bus.wait_online()
+            time.sleep(min(1.0, window / 4))
+            start = time.monotonic()
+            time.sleep(window)
+            records = sim.ask('exchanges', start)
+            stats = sim.ask('stats')
+        finally:
+            streamer.stop()
+            bus.close()
+    # Whole cycles only: from one setpoint write of drive 1 to a later one.
+    marks = [i for i, (_, _, request, _) in enumerate(records)
+             if request[0] == 1 and request[1] in (6, 16)
+             and int.from_bytes(request[2:4], 'big') == setpoint]
+    if len(marks) < 3:
+        raise RuntimeError(f'only {len(marks)} cycles in the window: lengthen it')
+    first, last = marks[0], marks[-1]
+    cycles = len(marks) - 1
+    span = records[last][0] - records[first][0]
+    wire = sum(framing.exchange_time(request, reply)
+               for _, _, request, reply in records[first:last])
+    achieved = cycles / span
+    theoretical = cycles / wire
+    static = 1.0 / (units * static_cycle_time(profile, framing))
+    return {
+        'profile': profile_name, 'drives': units, 'baudrate': framing.baudrate,
+        'framing': framing.name, 'stack': stack, 'cycles': cycles, 'seconds': round(span, 3),
+        'transactions_per_cycle': round((last - first) / cycles, 2),
+        'cycles_per_s': round(achieved, 3), 'theoretical_cycles_per_s': round(theoretical, 3),
+        'static_theoretical_cycles_per_s': round(static, 3),
+        'ratio': round(achieved / theoretical, 4),
+        'target': 0.95 if framing.baudrate <= 19200 else 0.90 if framing.baudrate == 115200
+        else None,
+        'gap_violations': stats['gap_violations'], 'line_errors': stats['crc_errors'],
+    }
+
+
+# --- 2. software floor ------------------------------------------------------------------
+
+
+def software_floor(profile_name: str, cycles: int, stack: str,
+                   profiler: Any = None) -> dict[str, Any]:
+    """Measure the drive layer on a pty with no wire time: transactions/s and us each."""
+    port = _port_path('floor')
+    profile = load_profile(profile_name)
+    serial = profile.modbus.serial
+    with SimProcess('rtu', profile_name, [1], port, serial.baudrate, serial.parity,
+                    serial.stopbits, emulate=False):
+        wait_port(port)
+        kwargs = dict(baudrate=serial.baudrate, parity=serial.parity, stopbits=serial.stopbits,
+                      bytesize=serial.bytesize, timeout=0.5,
+                      exception_codes=profile.modbus.exception_codes)
+        transport = ModbusRtuTransport(port, frame_gap=0.0, **kwargs) if stack == 'vfd_ros2' \
+            else PymodbusRtuTransport(port, **kwargs)
+        controller = build_controller({'drive.profile': profile_name, 'transport.port': port},
+                                      transport=transport)
+        drive = controller.drive
+        transport.open()
+        try:
+            drive.apply(0.0, run=False)
+            for cycle in range(20):          # warm-up
+                drive.apply(0.1 * (cycle % 3), run=False)
+                drive.poll(cycle)
+            before = transport.stats.transactions
+            cpu0, start = time.process_time(), time.perf_counter()
+            if profiler is not None:
+                profiler.enable()
+            for cycle in range(cycles):
+                drive.apply(0.1 * (cycle % 3), run=False)
+                drive.poll(cycle)
+            if profiler is not None:
+                profiler.disable()
+            elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu0
+            done = transport.stats.transactions - before
+            errors = transport.stats.errors
+        finally:
+            transport.close()
+    return {'profile': profile_name, 'stack': stack, 'level': 'drive (apply+poll)',
+            'transactions': done, 'errors': errors,
+            'transactions_per_s': round(done / elapsed, 1),
+            'us_per_transaction': round(1e6 * elapsed / done, 1),
+            'cpu_us_per_transaction': round(1e6 * cpu / done, 1)}
+
+
+def software_floor_node(profile_name: str, window: float, stack: str) -> dict[str, Any]:
+    """Measure the same through the drive node (ROS spinning), back-to-back cycles."""
+    port = _port_path('floornode')
+    profile = load_profile(profile_name)
+    serial = profile.modbus.serial
+    with SimProcess('rtu', profile_name, [1], port, serial.baudrate, serial.parity,
+                    serial.stopbits, emulate=False):
+        wait_port(port)
+        link = {'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.timeout': 0.5}
+        bus = NodeBus(profile_name, 1, link, control_rate=10000.0, stack=stack,
+                      frame_gap_s=0.0 if stack == 'vfd_ros2' else None)
+        streamer = Streamer(bus, 50.0)
+        try:
+            bus.wait_online()
+            stats = bus.bus.transport.stats
+            before, start = stats.transactions, time.monotonic()
+            time.sleep(window)
+            done, elapsed = stats.transactions - before, time.monotonic() - start
+        finally:
+            streamer.stop()
+            bus.close()
+    return {'profile': profile_name, 'stack': stack, 'level': 'drive node (ROS spinning)',
+            'transactions': done, 'errors': stats.errors,
+            'transactions_per_s': round(done / elapsed, 1),
+            'us_per_transaction': round(1e6 * elapsed / done, 1),
+            'cpu_us_per_transaction': None}
+
+
+# --- 3. command latency ------------------------------------------------------------------
+
+
+def command_latency(profile_name: str, commands: int, kind: str,
+                    framing: Framing | None = None, rate: float | None = None,
+                    stack: str = 'vfd_ros2') -> dict[str, Any]:
+    """Publish ~/velocity_command -> last byte of the setpoint write at the simulator."""
+    profile = load_profile(profile_name)
+    setpoint = profile.parameter(profile.velocity.setpoint)
+    if kind == 'rtu' and framing is not None:
+        cycle_rate = 1.0 / static_cycle_time(profile, framing)
+        rate = rate or float(math.floor(0.9 * cycle_rate))
+        port = _port_path('lat')
+        sim = SimProcess('rtu', profile_name, [1], port, framing.baudrate, framing.parity,
+                         framing.stopbits, emulate=True)
+    else:
+        rate = rate or 100.0
+        sim = SimProcess('tcp', profile_name, [1])
+    with sim:
+        if kind == 'rtu':
+            wait_port(port)
+            link = {'transport.type': 'modbus_rtu', 'transport.port': port,
+                    'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
+                    'transport.stopbits': framing.stopbits, 'transport.timeout': 0.5}
+        else:
+            link = {'transport.type': 'modbus_tcp', 'transport.host': '127.0.0.1',
+                    'transport.port': sim.where, 'transport.timeout': 0.5}
+        bus = NodeBus(profile_name, 1, link, control_rate=rate, stack=stack)
+        try:
+            bus.wait_online()
+            drive = bus.controllers[0].drive
+            # Distinct raw setpoints: each command is recognisable on the wire.
+            velocities, raws = [], []
+            for step in range(2000):
+                velocity = 0.5 + 0.013 * step
+                raw = drive._native_setpoint(velocity)[0]     # noqa: SLF001
+                if (not raws or raw != raws[-1]) and velocity < bus.controllers[0] \
+                        .config.max_velocity:
+                    velocities.append(velocity)
+                    raws.append(raw)
+            period = 1.0 / rate
+            sent: list[tuple[float, int]] = []
+            start = next_time = time.monotonic()
+            for index in range(commands):
+                velocity = velocities[index % len(velocities)]
+                now = time.monotonic()
+                bus.publishers[0].publish(Float64(data=velocity))
+                sent.append((now, raws[index % len(raws)]))
+                next_time += period
+                time.sleep(max(0.0, next_time - time.monotonic()))
+            time.sleep(0.3)
+            frames = sim.ask('received', start - 1.0)
+        finally:
+            bus.close()
+    writes = []
+    for stamp, frame in frames:
+        pdu = frame[7:] if kind == 'tcp' else frame[1:-2]
+        if pdu[0] == 6 and int.from_bytes(pdu[1:3], 'big') == setpoint.address:
+            writes.append((stamp, int.from_bytes(pdu[3:5], 'big', signed=True)))
+        elif pdu[0] == 16 and int.from_bytes(pdu[1:3], 'big') == setpoint.address:
+            writes.append((stamp, int.from_bytes(pdu[6:8], 'big', signed=True)))
+    latencies, superseded = [], 0
+    cursor = 0
+    for published, raw in sent:
+        while cursor < len(writes) and writes[cursor][0] < published:
+            cursor += 1
+        # The first write of this command's value after it was published (within 1 s):
+        # a command replaced by the next one before any cycle picked it up has none.
+        hit = next((stamp for stamp, value in writes[cursor:]
+                    if value == raw and stamp < published + 1.0), None)
+        if hit is None:
+            superseded += 1
+        else:
+            latencies.append(hit - published)
+    wire = framing.exchange_time(bytes(8), 8) if framing else None
+    longest = None
+    if framing:
+        drive_blocks = build_controller({'drive.profile': profile_name,
+                                         'transport.port': '/dev/null'}).drive.blocks
+        longest = max(transaction_time(8, reply_size(3, b.count), framing.char, framing.gap)
+                      for b in drive_blocks)
+    ms = [1e3 * x for x in latencies]
+    return {
+        'transport': kind, 'profile': profile_name, 'stack': stack,
+        'baudrate': framing.baudrate if framing else None,
+        'command_rate_hz': rate, 'commands': commands, 'matched': len(ms),
+        'superseded': superseded,
+        'median_ms': round(statistics.median(ms), 3) if ms else None,
+        'p99_ms': round(_percentile(ms, 0.99), 3) if ms else None,
+        'max_ms': round(max(ms), 3) if ms else None,
+        'write_transaction_ms': round(1e3 * wire, 3) if wire else None,
+        'target_p99_ms': round(1e3 * longest + 1.0, 3) if longest else None,
+    }
+
+
+# --- 5. CPU and memory -------------------------------------------------------------------
+
+
+def _proc_cpu_seconds(pid: int) -> float:
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    ticks = os.sysconf('SC_CLK_TCK')
+    return (int(fields[11]) + int(fields[12])) / ticks
+
+
+def _proc_rss_mb(pid: int) -> float:
+    for line in Path(f'/proc/{pid}/status').read_text().splitlines():
+        if line.startswith('VmRSS:'):
+            return int(line.split()[1]) / 1024.0
+    return math.nan
+
+
+def _thread_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds per thread name (Fast DDS names its threads; Python's are 'python')."""
+    ticks = os.sysconf('SC_CLK_TCK')
+    result: dict[str, float] = {}
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            head, tail = (task / 'stat').read_text().rsplit(')', 1)
+        except OSError:
+            continue
+        name = head.split('(', 1)[1]
+        name = 'python' if name.startswith('python') else name.rstrip('0123456789.')
+        fields = tail.split()
+        result[name] = result.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
+    return result
+
+
+def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
+              profile_with_pyspy: bool = False) -> dict[str, Any]:
+    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS."""
+    port = _port_path('cpu')
+    tag = f'c{uuid.uuid4().hex[:6]}'
+    drives = {f'd{u}': {'namespace': f'/{tag}/d{u}', 'drive.profile': profile_name,
+                        'transport.unit_id': u, 'gear_ratio': 10.0, 'auto_enable': True,
+                        'status_rate': 20.0, 'drive_comm_timeout': DRIVE_COMM_TIMEOUT}
+              for u in range(1, units + 1)}
+    # No wire time and no t3.5 wait: this case measures the driver's CPU at the control
+    # rate (four AM drives cannot reach 50 Hz on one real 115200-baud line: section 1).
+    config = {'bus': {'name': tag, 'transport.type': 'modbus_rtu', 'transport.port': port,
+                      'transport.timeout': 0.1, 'transport.frame_gap': 0.0,
+                      'control_rate': control_rate},
+              'drives': drives}
+    result: dict[str, Any] = {'profile': profile_name, 'drives': units,
+                              'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
+    entry = 'from vfd_ros2.bus_node import main'
+    with tempfile.TemporaryDirectory() as tmp, \
+            SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
+        wait_port(port)
+        log = open(Path(tmp) / 'bus_node.log', 'w+b')    # noqa: SIM115 - read on failure
+        path = Path(tmp) / 'bus.yaml'
+        path.write_text(yaml.safe_dump(config))
+        env = dict(os.environ)
+        env['PYTHONPATH'] = os.pathsep.join(
+            p for p in (env.get('PYTHONPATH', ''), str(Path(__file__).resolve().parent.parent))
+            if p)
+        child = subprocess.Popen(
+            [sys.executable, '-c', f'import sys; {entry}; sys.exit(main())',
+             '--ros-args', '-p', f'config_file:={path}',
+             '--log-level', 'warn'], stdout=subprocess.DEVNULL, stderr=log, env=env, cwd=tmp)
+        context = Context()
+        rclpy.init(context=context)
+        node = Node('bench_cpu', namespace=f'/{tag}', context=context)
+        publishers = [node.create_publisher(Float64, f'd{u}/drive/velocity_command', 10)
+                      for u in range(1, units + 1)]
+        last: dict[int, DriveStatus] = {}
+        for u in range(1, units + 1):
+            node.create_subscription(DriveStatus, f'd{u}/drive/status',
+                                     lambda msg, u=u: last.__setitem__(u, msg), 10)
+        node.create_timer(1.0 / 50.0, lambda: [p.publish(Float64(data=1.0))
+                                               for p in publishers])
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+
+        def spin_for(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+        try:
+            deadline = time.monotonic() + 30.0
+            while not (len(last) == units and all(s.online and s.running
+                                                  for s in last.values())):
+                if time.monotonic() > deadline or child.poll() is not None:
+                    log.seek(0)
+                    raise RuntimeError('bus_node did not bring the drives online: '
+                                       f'{ {u: (s.online, s.state) for u, s in last.items()} } '
+                                       + log.read().decode(errors='replace')[-800:])
+                spin_for(0.1)
+            spin_for(1.0)
+            # One shared transport: every drive's status carries the bus's counters.
+            tx0 = max(s.transactions for s in last.values())
+            threads0 = _thread_cpu(child.pid)
+            cpu0, start = _proc_cpu_seconds(child.pid), time.monotonic()
+            spy = None
+            if profile_with_pyspy:
+                spy = _start_pyspy(child.pid, window)
+            spin_for(window)
+            cpu1, end = _proc_cpu_seconds(child.pid), time.monotonic()
+            threads1 = _thread_cpu(child.pid)
+            result['cpu_percent_by_thread'] = {
+                name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
+                for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0}
+            tx1 = max(s.transactions for s in last.values())
+            result['comm_errors'] = max(s.comm_errors for s in last.values())
+            result['rss_mb'] = round(_proc_rss_mb(child.pid), 1)
+            if spy is not None:
+                result['pyspy_top'] = _finish_pyspy(spy)
+        finally:
+            child.terminate()
+            try:
+                child.wait(10.0)
+            except subprocess.TimeoutExpired:
+                child.kill()
+            executor.shutdown(timeout_sec=1.0)
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+    cpu_percent = 100.0 * (cpu1 - cpu0) / (end - start)
+    drive = build_controller({'drive.profile': profile_name,
+                              'transport.port': '/dev/null'}).drive
+    per_cycle = 1 + sum(1.0 / drive._block_every[b] for b in drive.blocks)  # noqa: SLF001
+    result.update({
+        'cpu_percent': round(cpu_percent, 2),
+        'cpu_percent_per_drive': round(cpu_percent / units, 2),
+        'transactions_per_s': round((tx1 - tx0) / (end - start), 1),
+        'approx_cycles_per_s': round((tx1 - tx0) / (end - start) / units / per_cycle, 1),
+        'target_percent_per_drive': 5.0,
+    })
+    return result
+
+
+def _start_pyspy(pid: int, seconds: float) -> Any:
+    out = tempfile.NamedTemporaryFile(suffix='.txt', delete=False)
+    out.close()
+    spy = subprocess.Popen(['py-spy', 'record', '--gil', '--pid', str(pid), '--duration',
+                            str(max(1, int(seconds))), '--rate', '250', '--format', 'raw',
+                            '--nonblocking', '--output', out.name],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return spy, out.name
+
+
+def _finish_pyspy(spy: Any) -> list[tuple[str, float]]:
+    process, path = spy
+    try:
+        process.wait(30.0)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return []
+    return summarise_collapsed(Path(path).read_text() if Path(path).exists() else '')
+
+
+def summarise_collapsed(text: str, top: int = 8) -> list[tuple[str, float]]:
+    """Share of samples by the innermost vfd_ros2/pymodbus/rclpy/serial frame of each stack."""
+    counts: dict[str, int] = {}
+    total = 0
+    for line in text.splitlines():
+        stack, _, number = line.rpartition(' ')
+        if not number.isdigit():
+            continue
+        samples = int(number)
+        total += samples
+        frames = stack.split(';')
+        label = frames[-1]
+        for frame in reversed(frames):
+            if any(key in frame for key in ('vfd_ros2', 'pymodbus', 'rclpy', 'serial')):
+                label = frame
+                break
+        label = label.split(' (')[0] + ' ' + (label.split('(')[1].split(':')[0].rsplit('/', 1)[-1]
+                                             if '(' in label else '')
+        counts[label] = counts.get(label, 0) + samples
+    if not total:
+        return []
+    ranked = sorted(counts.items(), key=lambda item: -item[1])[:top]
+    return [(label.strip(), round(100.0 * n / total, 1)) for label, n in ranked]

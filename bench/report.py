@@ -1,0 +1,208 @@
+"""The benchmark's printed table and the README's Performance text."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def _fmt(value: Any, digits: int = 1) -> str:
+    if value is None:
+        return '-'
+    if isinstance(value, float):
+        return f'{value:.{digits}f}'
+    return str(value)
+
+
+def _verdict(value: float | None, target: float | None, higher_is_better: bool) -> str:
+    if value is None or target is None:
+        return ''
+    ok = value >= target if higher_is_better else value <= target
+    return 'met' if ok else 'NOT met'
+
+
+def _table(headers: list[str], rows: list[list[str]]) -> str:
+    lines = ['| ' + ' | '.join(headers) + ' |', '|' + '---|' * len(headers)]
+    lines += ['| ' + ' | '.join(row) + ' |' for row in rows]
+    return '\n'.join(lines)
+
+
+def render_table(results: dict[str, Any]) -> str:
+    parts = []
+    rows = []
+    for r in results.get('bus_efficiency', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
+            continue
+        rows.append([
+            f"{r['profile']} {r['stack']}", f"{r['baudrate']} {r['framing']}", str(r['drives']),
+            _fmt(r['cycles_per_s'], 2), _fmt(r['theoretical_cycles_per_s'], 2),
+            _fmt(r['static_theoretical_cycles_per_s'], 2), f"{100 * r['ratio']:.1f} %",
+            '-' if r['target'] is None else f"{100 * r['target']:.0f} % "
+            + _verdict(r['ratio'], r['target'], True),
+            _fmt(r['transactions_per_cycle'], 2), str(r['gap_violations'])])
+    if rows:
+        parts.append('**1. Bus efficiency, Modbus RTU** (wire-time emulation; full command + '
+                     'status cycles per second of the whole bus)\n\n' + _table(
+                         ['drive, stack', 'baud', 'drives', 'cycles/s', 'wire max (frames seen)',
+                          'wire max (profile)', 'ratio', 'target', 'frames/drive-cycle',
+                          't3.5 violations'], rows))
+    rows = []
+    for r in results.get('software_floor', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error'], '', '', ''])
+            continue
+        rows.append([r['stack'], r['level'], _fmt(r['transactions_per_s'], 0),
+                     _fmt(r['us_per_transaction'], 0), _fmt(r['cpu_us_per_transaction'], 0)])
+    if rows:
+        parts.append('**2. Software floor** (no wire time; boneng_am cycle: FC06 + status '
+                     'reads)\n\n' + _table(['stack', 'level', 'transactions/s', 'µs/transaction',
+                                           'CPU µs/transaction'], rows))
+    rows = []
+    for r in results.get('command_latency', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 7)
+            continue
+        where = f"RTU {r['baudrate']}" if r['transport'] == 'rtu' else 'TCP'
+        rows.append([f"{where} ({r['profile']})", _fmt(r['command_rate_hz'], 0),
+                     f"{r['matched']}/{r['commands']}", _fmt(r['median_ms'], 2),
+                     _fmt(r['p99_ms'], 2), _fmt(r['max_ms'], 2),
+                     _fmt(r['target_p99_ms'], 2),
+                     _verdict(r['p99_ms'], r['target_p99_ms'], False)])
+    if rows:
+        parts.append('**3. Command latency** (publish `~/velocity_command` → last byte of the '
+                     'setpoint write at the simulator; commands at about the cycle rate the '
+                     'wire allows; `written/sent`: a command replaced by the next before any '
+                     'cycle picked it up is never written and not counted; target = longest '
+                     'transaction of the cycle + 1 ms)\n\n' + _table(
+                         ['link', 'commands/s', 'written/sent', 'median ms', 'p99 ms', 'max ms',
+                          'target p99 ms', ''], rows))
+    canopen = results.get('canopen')
+    if canopen is not None:
+        if 'skipped' in canopen:
+            parts.append(f"**4. CANopen**: skipped — {canopen['skipped']}")
+        else:
+            rows = [[str(r.get('drives')), _fmt(r.get('rate_hz'), 0),
+                     _fmt(r.get('cycles_per_s'), 1), str(r.get('missed_cycles')),
+                     _fmt(r.get('latency_median_ms'), 2), _fmt(r.get('latency_p99_ms'), 2),
+                     _fmt(r.get('latency_max_ms'), 2)] for r in canopen.get('rows', [])]
+            parts.append('**4. CANopen** (python-can virtual bus)\n\n' + _table(
+                ['drives', 'target Hz', 'cycles/s', 'missed', 'median ms', 'p99 ms', 'max ms'],
+                rows) + ('\n\n' + canopen['note'] if canopen.get('note') else ''))
+    rows = []
+    for r in results.get('cpu', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error'], '', '', '', ''])
+            continue
+        rows.append([str(r['drives']), _fmt(r['approx_cycles_per_s'], 1),
+                     _fmt(r['cpu_percent'], 1), _fmt(r['cpu_percent_per_drive'], 1),
+                     _fmt(r['rss_mb'], 0),
+                     _verdict(r['cpu_percent_per_drive'], r['target_percent_per_drive'], False)])
+    if rows:
+        parts.append('**5. CPU and memory** (bus_node process, boneng_am, 50 Hz control, '
+                     '20 Hz status, commands at 50 Hz)\n\n' + _table(
+                         ['drives', 'cycles/s per drive', 'CPU % (one core)', 'CPU % per drive',
+                          'RSS MB', 'target ≤ 5 %/drive'], rows))
+    meta = results.get('meta', {})
+    parts.append(f"_{meta.get('mode', '')} run, {meta.get('date', '')}, "
+                 f"{meta.get('cpus', '?')} CPUs, Python {meta.get('python', '')}, pymodbus "
+                 f"{meta.get('pymodbus', '')}, {meta.get('seconds', '?')} s_")
+    return '\n\n'.join(parts)
+
+
+def render_markdown(results: dict[str, Any], table: str) -> str:
+    command = results.get('meta', {}).get('command', 'scripts/bench')
+    profile = results.get('floor_profile')
+    evidence = ''
+    if profile:
+        lines = []
+        for stack, rows in profile.items():
+            top = ', '.join(f'{name} {share} %' for name, share, _ in rows[:5])
+            lines.append(f'- {stack}: {top}')
+        evidence = ('\n\ncProfile of the software floor (share of own time, top 5):\n'
+                    + '\n'.join(lines))
+    spy = [(r['drives'], r.get('pyspy_top')) for r in results.get('cpu', [])
+           if r.get('pyspy_top')]
+    if spy:
+        evidence += '\n\npy-spy of the bus_node process at 50 Hz (share of samples):\n' + \
+            '\n'.join(f'- {drives} drive(s): ' + ', '.join(f'{n} {p} %' for n, p in top[:6])
+                      for drives, top in spy)
+    return f"""## Performance
+
+Measured by `{command}` (`bench/run.py`, about 7 minutes on 2 cores; `scripts/bench
+--quick` for a smoke run; results in `bench/results/latest.json`). Everything runs on one
+machine: the simulated drives in their own process behind a pseudo-terminal whose wire
+time is emulated at the baud rate (`vfd_ros2/sim/rtu_line.py`: a request is complete only
+at its last byte, the reply starts t3.5 after it and its bytes reach the pty as each would
+finish on the wire, never earlier), loopback TCP, python-can's virtual bus, DDS on
+localhost. Theoretical maximum = (request + reply bytes) × character time + 2 × t3.5 per
+transaction (t3.5 = 3.5 characters, 1.75 ms above 19200 baud), summed over the frames
+actually exchanged between two setpoint writes of drive 1 (`frames seen`) and, as a
+cross-check, over the profile's planned cycle (`profile`). The drive's own response delay
+is 0. Figures compare only within one run on one machine.
+
+{table}
+
+{BOUNDS}{evidence}
+"""
+
+
+BOUNDS = """### Targets and what bounds them
+
+- **Bus efficiency (≥ 90 % at 115200 with 1 and 4 drives, ≥ 95 % at 19200 and below).**
+  RTU transactions run on `vfd_ros2/transports/rtu_link.py`: pymodbus' `FramerRTU` and PDU
+  classes over pyserial (byte-identical frames), the reply read by its known length in
+  `select` with deadlines from the baud rate, t3.5 of silence kept before each request.
+  What is left to the wire's limit is turnaround per transaction: two scheduler wake-ups
+  (the master seeing the reply's last byte, the slave seeing the request) plus the GIL
+  hand-over from the rclpy executor thread, ~0.2-0.4 ms. It weighs most at 115200 baud
+  with 4 drives (a transaction is ~5 ms, and four nodes' status/command callbacks compete
+  for the GIL). What moves the cycle rate further is fewer transactions, not a faster
+  stack: the BONENG AM allows 5 registers per read and no reads across undocumented
+  addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and above 19200
+  baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM drives on one
+  115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive per line
+  or slower status polling (`every:` in the profile).
+- **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
+  measured in the same run): it does not know the reply length, so `_wait_for_data` polls
+  `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
+  ≥ 2 polling periods per reply (software floor: ~2.2 ms per transaction; cProfile: 91 %
+  of its time in `time.sleep`), which misses 95 % at 19200. At 115200 it looks efficient
+  only because it sends the next request with no t3.5 gap (`t3.5 violations`; a real
+  slave may merge such frames). Upstream-style fix: have `sync_get_response` ask the
+  framer for the frame size after the first bytes (`pdu_class.calculateRtuFrameSize`, as
+  `FramerRTU.decode` already does) and block in `select`/`serial.read(n)` for exactly
+  that many bytes; keep t3.5 after the last received byte before `send`.
+- **Command latency (p99 ≤ one transaction + 1 ms) — not met on RTU.** The transport
+  is not the bound: a command waits for the next controller cycle, i.e. behind the
+  current cycle's status reads (`CycleLoop` sleeps to the next period;
+  `DriveController.step` / `Bus.step` = command phase, then every poll block), so p99 ≈
+  one whole cycle (~31 ms at 115200 with one AM drive, where one transaction is ~5 ms).
+  Commands must preempt polls (controller.py, drive.py — not in this change):
+  (1) `DriveController.command_velocity` sets a `threading.Event` `_command_pending`;
+  (2) `CycleLoop` gets a `wake: threading.Event` and waits with
+  `wake.wait(delay)` instead of `self._stop.wait(delay)` (stop also sets it), running
+  `step` at once when a command arrives; (3) `ModbusDrive.poll(cycle, between=None)`
+  calls `between()` before each block read, and `DriveController.poll_phase` passes a
+  function that, if `_command_pending` is set, clears it and writes the setpoint
+  (`drive.apply`) right there. Then a command waits at most for the transaction in
+  flight plus its own write frame. TCP (no polling gaps, 100 Hz loop) shows the same
+  structure: median ≈ half a period.
+- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — a few missed.** Each
+  drive runs its own Python `CycleLoop` thread; on 2 cores shared with the rclpy executor
+  and the simulated drives' thread an occasional wake-up is late by more than one 4 ms
+  period, and the loop then restarts its schedule instead of bursting (a missed cycle).
+  What would move it: one bus thread for all CANopen drives on a channel (as `Bus` does for
+  RTU) sending every RPDO in one burst after SYNC, a real-time priority
+  (`os.sched_setscheduler(SCHED_FIFO)`) for that thread on the robot, and fewer
+  executor wake-ups (below).
+- **CPU (≤ 5 % of one core per drive at 50 Hz) — close, not met.** Thread split: Fast DDS
+  threads < 1 %, the rest is Python. py-spy (`--gil`) of the bus_node process:
+  ~30-40 % of GIL time in rclpy's `Executor._wait_for_ready_callbacks` (the
+  SingleThreadedExecutor rebuilds its wait set on every wake-up: each drive node has a
+  velocity subscription at 50 Hz, two timers, ten services), ~8 % `Publisher.publish`;
+  the driver's own code is a few % (`ModbusDrive.poll` 4 %, `RtuLink` 3 %; software floor:
+  ~30 µs of CPU per RTU transaction, ~0.8 % of a core per drive at 50 Hz). What would move
+  it (node.py / bus_node.py): rclpy's `EventsExecutor` (`rclpy.experimental`), one
+  bus-level timer publishing every drive's status instead of one timer per node, and
+  `start_parameter_services=False` on the per-drive nodes of a bus.
+"""

@@ -1,0 +1,189 @@
+"""vfd_ros2 benchmark: bus efficiency, software floor, command latency, CANopen, CPU.
+
+    scripts/bench            # full run (~10 min on 2 cores)
+    scripts/bench --quick    # a few seconds per case (smoke run)
+
+Prints a table and writes bench/results/latest.json and bench/RESULTS.md.
+Everything runs on this machine: pseudo-terminals for RS-485, loopback TCP,
+python-can's virtual bus; DDS stays on localhost. Figures compare only
+within one run on one machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import datetime
+import io
+import json
+import os
+import platform
+import pstats
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable
+
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+HERE = Path(__file__).resolve().parent
+# Appended, not prepended: vfd_ros2 must come from the colcon install (it has the
+# generated messages), the bench package from this checkout.
+if str(HERE.parent) not in sys.path:
+    sys.path.append(str(HERE.parent))
+
+from bench import cases  # noqa: E402
+from bench.cases import Framing  # noqa: E402
+from bench.report import render_markdown, render_table  # noqa: E402
+
+BAUDS = (9600, 19200, 38400, 115200)
+
+
+def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]]]:
+    """Return the cases of one run, by section (lazily evaluated)."""
+    window = 2.5 if quick else 7.0
+    low_window = 6.0 if quick else 14.0       # 9600/19200 with 4 drives: ~2-4 cycles/s
+    counts = (1, 4) if quick else (1, 2, 4)
+    bauds = (19200, 115200) if quick else BAUDS
+    efficiency = []
+    for baud in bauds:
+        for units in counts:
+            w = low_window if baud <= 19200 and units > 1 else window
+            efficiency.append((f'rtu boneng_am {baud} 8N1 x{units}',
+                               lambda b=baud, u=units, w=w: cases.bus_efficiency(
+                                   'boneng_am', u, Framing(b), w)))
+    if not quick:
+        # The drives' own factory framings: Kinco EC 115200 8N2, Veichi EHS100 9600 8N1.
+        for units in (1, 4):
+            efficiency.append((f'rtu kinco_ec 115200 8N2 x{units}',
+                               lambda u=units: cases.bus_efficiency(
+                                   'kinco_ec', u, Framing(115200, 'N', 2), window)))
+            efficiency.append((f'rtu veichi_ehs100 9600 8N1 x{units}',
+                               lambda u=units: cases.bus_efficiency(
+                                   'veichi_ehs100', u, Framing(9600), low_window)))
+        # pymodbus' stock client in the same harness, for reference.
+        for baud in (19200, 115200):
+            efficiency.append((f'rtu boneng_am {baud} 8N1 x1 (pymodbus stock)',
+                               lambda b=baud: cases.bus_efficiency(
+                                   'boneng_am', 1, Framing(b), window, stack='pymodbus')))
+    floor_cycles = 150 if quick else 1500
+    floor = [(f'floor {stack}', lambda s=stack: cases.software_floor('boneng_am', floor_cycles, s))
+             for stack in ('vfd_ros2', 'pymodbus')]
+    floor += [(f'floor node {stack}',
+               lambda s=stack: cases.software_floor_node('boneng_am', 2.0 if quick else 5.0, s))
+              for stack in ('vfd_ros2', 'pymodbus')]
+    commands = 150 if quick else 1000
+    latency = [
+        ('latency rtu 115200', lambda: cases.command_latency(
+            'boneng_am', commands, 'rtu', Framing(115200))),
+        ('latency tcp', lambda: cases.command_latency('imo_hd2', commands, 'tcp')),
+    ]
+    if not quick:
+        latency.insert(1, ('latency rtu 19200', lambda: cases.command_latency(
+            'boneng_am', commands // 2, 'rtu', Framing(19200))))
+    cpu_window = 3.0 if quick else 10.0
+    cpu = [(f'cpu x{units}', lambda u=units: cases.cpu_usage(
+        'boneng_am', u, cpu_window, profile_with_pyspy=not quick)) for units in (1, 4)]
+    return {'bus_efficiency': efficiency, 'software_floor': floor,
+            'command_latency': latency, 'cpu': cpu}
+
+
+def canopen_section(quick: bool) -> dict[str, Any]:
+    """CANopen cases, or the reason they were skipped."""
+    try:
+        from bench import canopen_cases
+    except Exception as exc:  # noqa: BLE001 - any import failure means "skip with a note"
+        return {'skipped': f'CANopen transport not importable: {type(exc).__name__}: {exc}'}
+    try:
+        return canopen_cases.run(quick)
+    except Exception as exc:  # noqa: BLE001
+        return {'skipped': f'CANopen cases failed: {type(exc).__name__}: {exc}'}
+
+
+def floor_profiles(cycles: int) -> dict[str, list[tuple[str, float, int]]]:
+    """Profile the software floor per stack: top functions by own time (evidence)."""
+    result = {}
+    for stack in ('vfd_ros2', 'pymodbus'):
+        profiler = cProfile.Profile()
+        cases.software_floor('boneng_am', cycles, stack, profiler=profiler)
+        stream = io.StringIO()
+        stats = pstats.Stats(profiler, stream=stream)
+        total = sum(v[2] for v in stats.stats.values()) or 1.0
+        rows = sorted(stats.stats.items(), key=lambda item: -item[1][2])[:8]
+        result[stack] = [(f'{Path(k[0]).name}:{k[2]}', round(100.0 * v[2] / total, 1), v[1])
+                         for k, v in rows]
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--quick', action='store_true', help='a few seconds per case')
+    parser.add_argument('--only', default='', help='comma-separated sections to run')
+    parser.add_argument('--case', action='append', default=[],
+                        help='run only the case(s) of this name (repeatable)')
+    parser.add_argument('--output', default=str(HERE / 'results' / 'latest.json'))
+    parser.add_argument('--markdown', default=str(HERE / 'RESULTS.md'),
+                        help="where to write the README's Performance text ('' = nowhere)")
+    parser.add_argument('--render-only', action='store_true',
+                        help='re-render the table and markdown from --output (no measuring)')
+    args = parser.parse_args(argv)
+    if args.render_only:
+        results = json.loads(Path(args.output).read_text())
+        table = render_table(results)
+        print(table)
+        if args.markdown:
+            Path(args.markdown).write_text(render_markdown(results, table))
+        return 0
+    only = {s for s in args.only.split(',') if s}
+    started = time.monotonic()
+    results: dict[str, Any] = {
+        'meta': {'date': datetime.datetime.now(datetime.timezone.utc).isoformat(
+            timespec='seconds'), 'mode': 'quick' if args.quick else 'full',
+            'command': 'scripts/bench' + (' --quick' if args.quick else ''),
+            'python': platform.python_version(), 'machine': platform.machine(),
+            'cpus': os.cpu_count(), 'pymodbus': _version('pymodbus')},
+    }
+    for section, entries in plan(args.quick).items():
+        if only and section not in only:
+            continue
+        rows = []
+        for name, run in entries:
+            if args.case and name not in args.case:
+                continue
+            print(f'[bench] {name} ...', flush=True)
+            try:
+                rows.append(run())
+            except Exception as exc:  # noqa: BLE001 - one failed case must not lose the rest
+                traceback.print_exc()
+                rows.append({'case': name, 'error': f'{type(exc).__name__}: {exc}'})
+        results[section] = rows
+    if (not only or 'canopen' in only) and not args.case:
+        print('[bench] canopen ...', flush=True)
+        results['canopen'] = canopen_section(args.quick)
+    if not args.quick and (not only or 'profile' in only):
+        print('[bench] cProfile of the software floor ...', flush=True)
+        results['floor_profile'] = floor_profiles(500)
+    results['meta']['seconds'] = round(time.monotonic() - started, 1)
+    table = render_table(results)
+    print(table)
+    output = Path(args.output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(results, indent=2))
+    print(f'[bench] wrote {output}')
+    if args.markdown:
+        Path(args.markdown).write_text(render_markdown(results, table))
+        print(f'[bench] wrote {args.markdown}')
+    return 0
+
+
+def _version(package: str) -> str:
+    try:
+        from importlib.metadata import version
+        return version(package)
+    except Exception:  # noqa: BLE001
+        return 'unknown'
+
+
+if __name__ == '__main__':
+    sys.exit(main())

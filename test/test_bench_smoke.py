@@ -1,0 +1,57 @@
+"""The benchmark runs: its cheapest --quick case, in-process, writes sane JSON.
+
+Speed is measured by ``scripts/bench``, never asserted here: these checks are
+about shape and sanity only (counts add up, no errors, positive rates).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:
+    sys.path.append(str(ROOT))   # after the colcon install: vfd_ros2 comes from there
+
+from bench import run  # noqa: E402
+from bench.report import render_table  # noqa: E402
+
+FLOOR_KEYS = {'profile', 'stack', 'level', 'transactions', 'errors', 'transactions_per_s',
+              'us_per_transaction', 'cpu_us_per_transaction'}
+
+
+def test_quick_software_floor_writes_json(tmp_path):
+    output = tmp_path / 'latest.json'
+    markdown = tmp_path / 'RESULTS.md'
+    assert run.main(['--quick', '--only', 'software_floor', '--case', 'floor vfd_ros2',
+                     '--case', 'floor pymodbus', '--output', str(output),
+                     '--markdown', str(markdown)]) == 0
+    results = json.loads(output.read_text())
+    assert results['meta']['mode'] == 'quick'
+    assert results['meta']['command'] == 'scripts/bench --quick'
+    rows = results['software_floor']
+    assert [row['stack'] for row in rows] == ['vfd_ros2', 'pymodbus']
+    for row in rows:
+        assert FLOOR_KEYS <= set(row), row
+        assert row['errors'] == 0
+        assert row['transactions'] > 0
+        assert row['transactions_per_s'] > 0
+        assert row['us_per_transaction'] > 0
+        # rate and time per transaction describe the same measurement
+        assert abs(row['transactions_per_s'] * row['us_per_transaction'] / 1e6 - 1.0) < 0.02
+    assert 'Software floor' in markdown.read_text()
+    assert '## Performance' in markdown.read_text()
+
+
+def test_table_renders_every_section_and_errors():
+    results = {
+        'meta': {'mode': 'quick'},
+        'bus_efficiency': [{'case': 'x', 'error': 'RuntimeError: boom'}],
+        'command_latency': [],
+        'canopen': {'skipped': 'not importable'},
+        'cpu': [],
+    }
+    table = render_table(results)
+    assert 'error: RuntimeError: boom' in table
+    assert 'CANopen**: skipped' in table
