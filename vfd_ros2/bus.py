@@ -116,6 +116,9 @@ class Bus:
                 transport=self.transport if shared else None)
         self.transports = list({id(c.drive.transport): c.drive.transport
                                 for c in self.controllers.values()}.values())
+        for controller in self.controllers.values():
+            # On one line, any drive's new command goes out before the next status read.
+            controller.between_reads = self.write_pending_commands
         rate = float(config.settings.get('control_rate', 50.0))
         self.period = 1.0 / rate
         self._loop: CycleLoop | None = None
@@ -130,6 +133,10 @@ class Bus:
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
+    def write_pending_commands(self) -> None:
+        for controller in self.controllers.values():
+            controller.write_pending_command()
+
     def finish(self) -> None:
         for controller in self.controllers.values():
             controller.finish()
@@ -139,7 +146,9 @@ class Bus:
     def start(self) -> None:
         if self._loop is None:
             self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
-                                   self.finish, self._clock)
+                                   self.finish, self._clock, urgent=self.write_pending_commands)
+            for controller in self.controllers.values():
+                controller.wake = self._loop.wake
             self._loop.start()
 
     def shutdown(self, timeout: float = 3.0) -> None:

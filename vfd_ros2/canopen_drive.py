@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from typing import Callable
 
 from .cia402 import Command, Goal, State, StatusBit, decode_state, next_command
 from .drive import ParameterValue, Reading
@@ -311,7 +312,7 @@ class CanopenDrive:
         if self.cia402 and self._status_role in self._values:
             self.state = decode_state(self._values[self._status_role])
 
-    def poll(self, cycle: int) -> Reading:
+    def poll(self, cycle: int, between: Callable[[], None] | None = None) -> Reading:
         """Decode what the drive sent (TPDOs, EMCY); raise if its heartbeat is lost."""
         nmt = self.transport.check_alive()
         if self._configured and nmt is not None and nmt not in (NmtState.OPERATIONAL,):

@@ -116,48 +116,64 @@ Action = Generator[None, None, ActionResult]
 class CycleLoop:
     """Calls ``step`` every ``period`` seconds in its own thread, then ``finish``.
 
-    An exception in ``step`` is logged and the loop goes on: nothing may stop
-    the thread that keeps a traction drive under control. An overrun restarts
-    the schedule instead of bursting to catch up.
+    Between cycles, ``wake()`` (e.g. a new velocity command) runs ``urgent`` at
+    once instead of waiting for the next period: commands preempt polls without
+    raising the poll rate. An exception in ``step`` is logged and the loop goes
+    on: nothing may stop the thread that keeps a traction drive under control.
+    An overrun restarts the schedule instead of bursting to catch up.
     """
 
     def __init__(self, name: str, period: float, step: Callable[[], None],
-                 finish: Callable[[], None], clock: Callable[[], float] = time.monotonic) -> None:
+                 finish: Callable[[], None], clock: Callable[[], float] = time.monotonic,
+                 urgent: Callable[[], None] | None = None) -> None:
         self.name = name
         self.period = period
         self._step = step
         self._finish = finish
+        self._urgent = urgent
         self._clock = clock
         self._stop = threading.Event()
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
 
     def start(self) -> None:
         self._thread.start()
 
+    def wake(self) -> None:
+        """Run ``urgent`` now (thread-safe; a no-op without ``urgent``)."""
+        if self._urgent is not None:
+            self._wake.set()
+
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout)
+
+    def _guarded(self, call: Callable[[], None]) -> None:
+        try:
+            call()
+        except Exception as exc:  # noqa: BLE001 - the loop must survive anything
+            log.exception('%s: loop error: %s', self.name, exc)
 
     def _run(self) -> None:
         next_cycle = self._clock()
         while not self._stop.is_set():
-            try:
-                self._step()
-            except Exception as exc:  # noqa: BLE001 - the loop must survive anything
-                log.exception('%s: loop error: %s', self.name, exc)
+            self._guarded(self._step)
             next_cycle += self.period
-            delay = next_cycle - self._clock()
-            if delay < -self.period:
+            if next_cycle - self._clock() < -self.period:
                 self.overruns += 1
                 next_cycle = self._clock()
-                delay = 0.0
-            self._stop.wait(max(delay, 0.0))
-        try:
-            self._finish()
-        except Exception as exc:  # noqa: BLE001
-            log.exception('%s: finish failed: %s', self.name, exc)
+            while not self._stop.is_set():
+                delay = next_cycle - self._clock()
+                if delay <= 0 or not self._wake.wait(delay):
+                    break
+                self._wake.clear()
+                if self._urgent is not None and not self._stop.is_set():
+                    self._guarded(self._urgent)
+        self._guarded(self._finish)
+
 
 class DriveController:
     """Runs one drive: connect, command, poll, watchdog, service actions."""
@@ -191,6 +207,14 @@ class DriveController:
         self._current: tuple[Iterator[None], Future] | None = None
         self._loop: CycleLoop | None = None
         self._cycle_ok = False
+        self._command_pending = False
+        self._failed_this_cycle = False
+        #: called when a command should be written before the next cycle (set by the
+        #: loop that runs this controller: its own, or a bus's)
+        self.wake: Callable[[], None] | None = None
+        #: run before each status read instead of this drive's own pending command
+        #: (a bus writes every drive's new command first)
+        self.between_reads: Callable[[], None] | None = None
         self._state = DriveState(hardware_id=drive.hardware_id)
 
     # --- thread-safe API ------------------------------------------------------
@@ -209,12 +233,19 @@ class DriveController:
         limit = self.config.max_velocity
         clamped = min(max(velocity, -limit), limit)
         with self._lock:
+            # A new value, or the first command after a watchdog stop, is written at
+            # once (see write_pending_command); a repeated one waits for the cycle.
+            urgent = clamped != self._velocity or self._watchdog.expired
             self._velocity = clamped
             self._watchdog.feed()
+            self._command_pending |= urgent
+            outcome = CommandOutcome.ACCEPTED
             if clamped != velocity:
                 self._clamped += 1
-                return CommandOutcome.CLAMPED
-        return CommandOutcome.ACCEPTED
+                outcome = CommandOutcome.CLAMPED
+        if urgent and self.wake is not None:
+            self.wake()
+        return outcome
 
     def command_setpoint(self, topic: str, value: float) -> None:
         """Accept an auxiliary setpoint (profile ``setpoints``); ParameterError if invalid.
@@ -243,7 +274,9 @@ class DriveController:
         """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
         if self._loop is None:
             self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
-                                   self.step, self.finish, self._clock)
+                                   self.step, self.finish, self._clock,
+                                   urgent=self.write_pending_command)
+            self.wake = self._loop.wake
             self._loop.start()
 
     def shutdown(self, timeout: float = 2.0) -> None:
@@ -261,17 +294,31 @@ class DriveController:
     def command_phase(self) -> None:
         """Connect when due, then write the command and setpoints."""
         self._cycle_ok = False
+        self._failed_this_cycle = False
         if not self._online and self._clock() >= self._next_connect:
             self._connect()
         if not self._online:
             return
+        try:
+            self._apply_command()
+            self._write_setpoints()
+            self._cycle_ok = True
+        except (TransportError, ProtocolException) as exc:
+            self._cycle_failed(exc)
+
+    def _apply_command(self) -> None:
         with self._lock:
             velocity = self._velocity
             expired = self._watchdog.expired
+            self._command_pending = False
+        self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
+
+    def write_pending_command(self) -> None:
+        """Write a new velocity command now, between polls (commands preempt polls)."""
+        if not (self._online and self._command_pending):
+            return
         try:
-            self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
-            self._write_setpoints()
-            self._cycle_ok = True
+            self._apply_command()
         except (TransportError, ProtocolException) as exc:
             self._cycle_failed(exc)
 
@@ -279,7 +326,7 @@ class DriveController:
         """Read the status, latch faults, advance a service action, publish the state."""
         if self._online and self._cycle_ok:
             try:
-                self._reading = self.drive.poll(self._cycle)
+                self._reading = self.drive.poll(self._cycle, between=self._between_reads)
                 self._cycle += 1
                 if self._reading.fault.active and not self._fault_latched:
                     self._fault_latched = True
@@ -324,6 +371,9 @@ class DriveController:
             log.error('%s: not applied at connect: %s', self.drive.hardware_id, problem)
 
     def _cycle_failed(self, exc: VfdError) -> None:
+        if self._failed_this_cycle:
+            return          # one cycle counts once, however many exchanges failed in it
+        self._failed_this_cycle = True
         self._failed_cycles += 1
         self._last_error = str(exc)
         if self._failed_cycles >= self.config.comm_loss_threshold:
@@ -332,6 +382,12 @@ class DriveController:
             self._reading = Reading()
             self.drive.close()
             self._next_connect = self._clock() + self.config.reconnect_period
+
+    def _between_reads(self) -> None:
+        if self.between_reads is not None:
+            self.between_reads()
+        else:
+            self.write_pending_command()
 
     def _run_allowed(self, watchdog_expired: bool) -> bool:
         return (self._online and self._enabled and not self._stopped

@@ -81,7 +81,8 @@ class Drive(Protocol):
     def write_setpoint_parameter(self, code: str, raw: int) -> None:
         """Write an already validated auxiliary setpoint (volatile where possible)."""
 
-    def poll(self, cycle: int) -> Reading: ...
+    def poll(self, cycle: int, between: Callable[[], None] | None = None) -> Reading:
+        """Read the status due this cycle; ``between()`` runs before each request."""
 
     def get_parameter(self, key: str) -> ParameterValue: ...
 
@@ -274,9 +275,15 @@ class ModbusDrive:
 
     # --- status ---------------------------------------------------------------
 
-    def poll(self, cycle: int) -> Reading:
-        """Read the blocks due this cycle and decode everything known so far."""
+    def poll(self, cycle: int, between: Callable[[], None] | None = None) -> Reading:
+        """Read the blocks due this cycle and decode everything known so far.
+
+        ``between()`` runs before each read, so a command that arrived meanwhile
+        goes on the wire ahead of the remaining status reads.
+        """
         for block in self.blocks:
+            if between is not None:
+                between()
             if cycle % self._block_every[block] == 0 or block.start not in self._words:
                 for offset, word in enumerate(self._read(block.start, block.count)):
                     self._words[block.start + offset] = word
