@@ -161,7 +161,9 @@ BOUNDS = """### Targets and what bounds them
   addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and above 19200
   baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM drives on one
   115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive per line
-  or slower status polling (`every:` in the profile).
+  or slower status polling (`every:` in the profile). At 115200 with 4 drives the margin
+  is thin and moves between runs on this shared 2-core machine (87.8-91.6 % in the full
+  runs of this change): the turnaround above is the part that varies.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -172,21 +174,18 @@ BOUNDS = """### Targets and what bounds them
   framer for the frame size after the first bytes (`pdu_class.calculateRtuFrameSize`, as
   `FramerRTU.decode` already does) and block in `select`/`serial.read(n)` for exactly
   that many bytes; keep t3.5 after the last received byte before `send`.
-- **Command latency (p99 ≤ one transaction + 1 ms) — not met on RTU.** The transport
-  is not the bound: a command waits for the next controller cycle, i.e. behind the
-  current cycle's status reads (`CycleLoop` sleeps to the next period;
-  `DriveController.step` / `Bus.step` = command phase, then every poll block), so p99 ≈
-  one whole cycle (~31 ms at 115200 with one AM drive, where one transaction is ~5 ms).
-  Commands must preempt polls (controller.py, drive.py — not in this change):
-  (1) `DriveController.command_velocity` sets a `threading.Event` `_command_pending`;
-  (2) `CycleLoop` gets a `wake: threading.Event` and waits with
-  `wake.wait(delay)` instead of `self._stop.wait(delay)` (stop also sets it), running
-  `step` at once when a command arrives; (3) `ModbusDrive.poll(cycle, between=None)`
-  calls `between()` before each block read, and `DriveController.poll_phase` passes a
-  function that, if `_command_pending` is set, clears it and writes the setpoint
-  (`drive.apply`) right there. Then a command waits at most for the transaction in
-  flight plus its own write frame. TCP (no polling gaps, 100 Hz loop) shows the same
-  structure: median ≈ half a period.
+- **Command latency (p99 ≤ one transaction + 1 ms) — close, not met on RTU.** Commands
+  preempt polls: a new velocity command wakes the drive loop between cycles
+  (`CycleLoop.wake`) and is written before the next status read of the cycle in progress
+  (`ModbusDrive.poll(between=...)`; on a bus, before any drive's next read). That took
+  the median from about one cycle (~25 ms at 115200, ~77 ms at 19200 before the change)
+  to ~5 ms / ~17 ms. What is left is physics: a command that arrives while a status read
+  is on the wire waits for that transaction to finish (≤ one transaction, the target's
+  budget) and then needs its own write transaction (request, t3.5, echo, t3.5: ~3.5 ms
+  at 115200), so the p99 is about two transactions. Meeting the target as stated would
+  need a drive that accepts a new request before the reply to the previous one (not
+  Modbus RTU), or shorter status reads (fewer registers per read lowers the in-flight
+  wait: profile `every:` / `max_read_registers`). TCP has no such serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — a few missed.** Each
   drive runs its own Python `CycleLoop` thread; on 2 cores shared with the rclpy executor
   and the simulated drives' thread an occasional wake-up is late by more than one 4 ms
