@@ -11,7 +11,7 @@ uses pymodbus' synchronous TCP client.
 from __future__ import annotations
 
 import logging
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -48,12 +48,63 @@ STANDARD_EXCEPTIONS: dict[int, str] = {
 }
 
 
-class _PymodbusTransport(RegisterTransport):
-    """What RTU and TCP share: request execution, error classification, counters."""
+class _ModbusTransport(RegisterTransport):
+    """What every Modbus transport shares: the requests, reply checks and counters.
+
+    A subclass only implements ``_exchange``: put one request PDU on its link and
+    return the reply PDU, raising CommTimeout / BadFrame / TransportError.
+    """
 
     def __init__(self, exception_codes: Mapping[int, str]) -> None:
         super().__init__()
         self._exception_text = {**STANDARD_EXCEPTIONS, **exception_codes}
+
+    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+        raise NotImplementedError
+
+    def _execute(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+        self.open()
+        reply = self._exchange(what, request, reply_bytes)
+        if isinstance(reply, ExceptionResponse):
+            self.stats.exceptions += 1
+            code = reply.exception_code
+            raise ProtocolException(code, self._exception_text.get(code, 'unknown exception'),
+                                    what)
+        if reply.isError():
+            self.stats.bad_frames += 1
+            raise BadFrame(f'{what}: error reply {reply}')
+        self.stats.transactions += 1
+        return reply
+
+    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
+        what = f'read {count} @ {address:#06x} (unit {unit})'
+        reply = self._execute(what, ReadHoldingRegistersRequest(
+            address=address, count=count, dev_id=unit), reply_size(3, count))
+        if len(reply.registers) != count:
+            self.stats.bad_frames += 1
+            raise BadFrame(f'{what}: got {len(reply.registers)} registers')
+        return list(reply.registers)
+
+    def write_register(self, unit: int, address: int, value: int) -> None:
+        what = f'write {value:#06x} @ {address:#06x} (unit {unit})'
+        reply = self._execute(what, WriteSingleRegisterRequest(
+            address=address, registers=[value & 0xFFFF], dev_id=unit), reply_size(6))
+        if reply.address != address:
+            self.stats.bad_frames += 1
+            raise BadFrame(f'{what}: echo names address {reply.address:#06x}')
+
+    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
+        what = f'write {len(values)} @ {address:#06x} (unit {unit})'
+        self._execute(what, WriteMultipleRegistersRequest(
+            address=address, registers=[v & 0xFFFF for v in values], dev_id=unit),
+            reply_size(16))
+
+
+class _PymodbusTransport(_ModbusTransport):
+    """A transport on one of pymodbus' synchronous clients (TCP; RTU for comparison)."""
+
+    def __init__(self, exception_codes: Mapping[int, str]) -> None:
+        super().__init__(exception_codes)
         self._received = b''
         self._client: ModbusSerialClient | ModbusTcpClient = self._make_client()
 
@@ -85,11 +136,10 @@ class _PymodbusTransport(RegisterTransport):
         except (OSError, ModbusException):
             pass
 
-    def _execute(self, what: str, call: Callable[[], Any]) -> Any:
-        self.open()
+    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self._received = b''
         try:
-            reply = call()
+            return self._client.execute(False, request)
         except ConnectionException as exc:
             self.stats.connect_failures += 1
             self.close()
@@ -106,38 +156,6 @@ class _PymodbusTransport(RegisterTransport):
             raise TransportError(f'{what}: {exc}') from exc
         finally:
             self.stats.bytes_received += len(self._received)
-        if isinstance(reply, ExceptionResponse):
-            self.stats.exceptions += 1
-            code = reply.exception_code
-            raise ProtocolException(code, self._exception_text.get(code, 'unknown exception'),
-                                    what)
-        if reply.isError():
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: error reply {reply}')
-        self.stats.transactions += 1
-        return reply
-
-    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
-        what = f'read {count} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, lambda: self._client.read_holding_registers(
-            address, count=count, device_id=unit))
-        if len(reply.registers) != count:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: got {len(reply.registers)} registers')
-        return list(reply.registers)
-
-    def write_register(self, unit: int, address: int, value: int) -> None:
-        what = f'write {value:#06x} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, lambda: self._client.write_register(
-            address, value & 0xFFFF, device_id=unit))
-        if reply.address != address:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: echo names address {reply.address:#06x}')
-
-    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        what = f'write {len(values)} @ {address:#06x} (unit {unit})'
-        self._execute(what, lambda: self._client.write_registers(
-            address, [v & 0xFFFF for v in values], device_id=unit))
 
 
 class _RtuSettings:
@@ -181,7 +199,7 @@ class _RtuSettings:
         return (byte_count + 3.5 * frames) * char
 
 
-class ModbusRtuTransport(_RtuSettings, RegisterTransport):
+class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
     """Modbus RTU over a serial port (RS-485 adapter, or a pseudo-terminal).
 
     Transactions run on ``RtuLink``: pymodbus frames and decodes, the reply is
@@ -194,14 +212,13 @@ class ModbusRtuTransport(_RtuSettings, RegisterTransport):
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  exception_codes: Mapping[int, str] | None = None,
                  frame_gap: float | None = None) -> None:
-        super().__init__()
+        super().__init__(exception_codes or {})
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
         self.stopbits = stopbits
         self.bytesize = bytesize
         self.timeout = timeout
-        self._exception_text = {**STANDARD_EXCEPTIONS, **(exception_codes or {})}
         self._link = RtuLink(port, baudrate, parity, stopbits, bytesize, timeout,
                              frame_gap_s=frame_gap, on_bytes=self._count_bytes)
 
@@ -223,10 +240,9 @@ class ModbusRtuTransport(_RtuSettings, RegisterTransport):
     def close(self) -> None:
         self._link.close()
 
-    def _execute(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
-        self.open()
+    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         try:
-            reply = self._link.transact(request, reply_bytes)
+            return self._link.transact(request, reply_bytes)
         except LinkLost as exc:
             self.stats.connect_failures += 1
             self.close()
@@ -237,39 +253,6 @@ class ModbusRtuTransport(_RtuSettings, RegisterTransport):
         except LinkBadFrame as exc:
             self.stats.bad_frames += 1
             raise BadFrame(f'{what}: malformed reply {exc.data.hex(" ")}') from exc
-        if isinstance(reply, ExceptionResponse):
-            self.stats.exceptions += 1
-            code = reply.exception_code
-            raise ProtocolException(code, self._exception_text.get(code, 'unknown exception'),
-                                    what)
-        if reply.isError():
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: error reply {reply}')
-        self.stats.transactions += 1
-        return reply
-
-    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
-        what = f'read {count} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, ReadHoldingRegistersRequest(
-            address=address, count=count, dev_id=unit), reply_size(3, count))
-        if len(reply.registers) != count:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: got {len(reply.registers)} registers')
-        return list(reply.registers)
-
-    def write_register(self, unit: int, address: int, value: int) -> None:
-        what = f'write {value:#06x} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, WriteSingleRegisterRequest(
-            address=address, registers=[value & 0xFFFF], dev_id=unit), reply_size(6))
-        if reply.address != address:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: echo names address {reply.address:#06x}')
-
-    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        what = f'write {len(values)} @ {address:#06x} (unit {unit})'
-        self._execute(what, WriteMultipleRegistersRequest(
-            address=address, registers=[v & 0xFFFF for v in values], dev_id=unit),
-            reply_size(16))
 
 
 class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
