@@ -30,6 +30,7 @@ from std_msgs.msg import Float64
 
 from vfd_ros2.bus import Bus, parse_bus_config
 from vfd_ros2.config import build_controller
+from vfd_ros2.executable import spin_in_background
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import Profile, load_profile
@@ -152,8 +153,7 @@ class NodeBus:
         self.executor = SingleThreadedExecutor(context=self.context)
         for node in [*self.nodes, self.tester]:
             self.executor.add_node(node)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
+        self._spin = spin_in_background(self.executor, self.context)
         self.bus.start()
 
     def _swap_transport(self, stack: str, frame_gap_s: float | None) -> None:
@@ -167,15 +167,6 @@ class NodeBus:
         self.bus.transport = new
         for controller in self.bus.controllers.values():
             controller.drive.transport = new
-
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down under us
-                if not self.context.ok():
-                    return
-                raise
 
     @property
     def controllers(self) -> list[Any]:

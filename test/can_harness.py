@@ -7,7 +7,6 @@ The CAN variant of ``harness.py``: every frame crosses python-can's in-process
 
 from __future__ import annotations
 
-import threading
 import uuid
 from typing import Any
 
@@ -18,6 +17,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from harness import DriveClient
+from vfd_ros2.executable import spin_in_background
 from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
@@ -65,17 +65,7 @@ class CanHarness:
             wheel = CanWheel(self, node_id, parameters)
             self.executor.add_node(wheel.node)
             self.wheels[node_id] = wheel
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
-
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down under us
-                if not self.context.ok():
-                    return
-                raise
+        self._spin = spin_in_background(self.executor, self.context)
 
     def close(self) -> None:
         for wheel in self.wheels.values():

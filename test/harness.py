@@ -22,6 +22,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
+from vfd_ros2.executable import spin_in_background
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import load_profile
@@ -144,17 +145,7 @@ class DriveHarness(DriveClient):
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
-
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down under us
-                if not self.context.ok():
-                    return
-                raise
+        self._spin = spin_in_background(self.executor, self.context)
 
     def frames_after(self, since: float) -> list[bytes]:
         return [frame for stamp, frame in list(self.line.received) if stamp >= since]

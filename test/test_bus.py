@@ -18,6 +18,7 @@ from harness import wait_for
 from vfd_ros2.bus import parse_bus_config
 from vfd_ros2.bus_node import BusNode
 from vfd_ros2.errors import ParameterError
+from vfd_ros2.executable import spin_in_background
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
@@ -64,14 +65,7 @@ def agv_bus(ros_context, tmp_path):
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (bus, *bus.drive_nodes, tester):
         executor.add_node(node)
-
-    def spin():
-        while ros_context.ok():
-            try:
-                executor.spin_once(timeout_sec=0.05)
-            except Exception:  # noqa: BLE001 - context shut down
-                return
-    threading.Thread(target=spin, daemon=True).start()
+    spin_in_background(executor, ros_context)
     commands = {wheel: 0.0 for wheel in WHEELS}
     streaming = threading.Event()
     streaming.set()

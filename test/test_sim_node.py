@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import threading
-
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -13,6 +11,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from harness import wait_for
+from vfd_ros2.executable import spin_in_background
 from vfd_ros2.sim.node import SimDriveNode
 from vfd_ros2.srv import InjectFault
 from vfd_ros2.transports.modbus import ModbusRtuTransport, ModbusTcpTransport
@@ -29,14 +28,7 @@ def sim_node(ros_context, tmp_path):
         executor = SingleThreadedExecutor(context=ros_context)
         executor.add_node(node)
         executor.add_node(client)
-        def spin():
-            while ros_context.ok():
-                try:
-                    executor.spin_once(timeout_sec=0.05)
-                except Exception:  # noqa: BLE001 - the context shut down under us
-                    return
-        thread = threading.Thread(target=spin, daemon=True)
-        thread.start()
+        spin_in_background(executor, ros_context)
         created.append((node, client, executor))
         return node, client
     yield make

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import threading
 from typing import Callable, Iterable
 
 import rclpy
+from rclpy.context import Context
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from .errors import VfdError
@@ -40,3 +42,18 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def spin_in_background(executor: Executor, context: Context) -> threading.Thread:
+    """Spin ``executor`` in a daemon thread until ``context`` shuts down (tests, tools)."""
+    def spin() -> None:
+        while context.ok():
+            try:
+                executor.spin_once(timeout_sec=0.05)
+            except Exception:  # noqa: BLE001 - the context shut down under us
+                if not context.ok():
+                    return
+                raise
+    thread = threading.Thread(target=spin, name='rclpy spin', daemon=True)
+    thread.start()
+    return thread
