@@ -107,6 +107,8 @@ def test_s4_s5_read_status_word_1(channel):
     try:
         value = drive.get_parameter('0x3300')
         assert value.raw == 0x0001                  # running forward, no fault (L941)
+        # The sniffer's notifier thread may still be delivering: wait, do not race it.
+        wait_for(lambda: sniffer.frames, 2.0, 'the request on the bus')
         assert sniffer.frames[0] == frame_bytes('S4')
     finally:
         drive.close()
