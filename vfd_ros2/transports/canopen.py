@@ -280,12 +280,24 @@ class CanopenTransport(Transport):
 
     def read_object(self, index: int, subindex: int, value_type: ValueType) -> int:
         """Expedited SDO upload of one typed value."""
-        import canopen
         node = self._require()
-        what = f'read 0x{index:04X}:{subindex:02X}'
+        data = self._sdo(f'read 0x{index:04X}:{subindex:02X}',
+                         lambda: node.sdo.upload(index, subindex))
+        return decode_value(value_type, data)
+
+    def write_object(self, index: int, subindex: int, value_type: ValueType, raw: int) -> None:
+        """Expedited SDO download of one typed value (1, 2 or 4 bytes)."""
+        node = self._require()
+        data = encode_value(value_type, raw)
+        self._sdo(f'write 0x{index:04X}:{subindex:02X} = {raw}',
+                  lambda: node.sdo.download(index, subindex, data))
+
+    def _sdo(self, what: str, call: Callable[[], Any]) -> Any:
+        """One SDO exchange; aborts, silence and bus errors become the driver's errors."""
+        import canopen
         self.stats.transactions += 1
         try:
-            data = node.sdo.upload(index, subindex)
+            return call()
         except canopen.SdoAbortedError as exc:
             self.stats.exceptions += 1
             raise SdoAbort(exc.code, what) from exc
@@ -293,26 +305,6 @@ class CanopenTransport(Transport):
             self._count_comm_error(exc)
             raise CommTimeout(f'no SDO reply from node {self.node_id} to {what}: {exc}') from exc
         except Exception as exc:  # noqa: BLE001 - can.CanError and library errors
-            self.stats.bad_frames += 1
-            raise TransportError(f'{what} on node {self.node_id} failed: {exc}') from exc
-        return decode_value(value_type, data)
-
-    def write_object(self, index: int, subindex: int, value_type: ValueType, raw: int) -> None:
-        """Expedited SDO download of one typed value (1, 2 or 4 bytes)."""
-        import canopen
-        node = self._require()
-        data = encode_value(value_type, raw)
-        what = f'write 0x{index:04X}:{subindex:02X} = {raw}'
-        self.stats.transactions += 1
-        try:
-            node.sdo.download(index, subindex, data)
-        except canopen.SdoAbortedError as exc:
-            self.stats.exceptions += 1
-            raise SdoAbort(exc.code, what) from exc
-        except canopen.SdoCommunicationError as exc:
-            self._count_comm_error(exc)
-            raise CommTimeout(f'no SDO reply from node {self.node_id} to {what}: {exc}') from exc
-        except Exception as exc:  # noqa: BLE001
             self.stats.bad_frames += 1
             raise TransportError(f'{what} on node {self.node_id} failed: {exc}') from exc
 
