@@ -5,13 +5,20 @@ import shutil
 import subprocess
 
 
-def test_demo_drives_both_wheels_through_the_profile():
+def run_demo(*args: str) -> str:
+    """Run the demo executable on loopback DDS; its output, after checking it exited 0."""
     executable = shutil.which('demo')
     assert executable, 'the demo executable is not on PATH (run through scripts/test)'
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([executable], env=env, capture_output=True, text=True, timeout=90)
+    result = subprocess.run([executable, *args], env=env, capture_output=True, text=True,
+                            timeout=90)
     output = result.stdout + result.stderr
     assert result.returncode == 0, output
+    return output
+
+
+def test_demo_drives_both_wheels_through_the_profile():
+    output = run_demo()
     assert 'both wheels followed the profile' in output
     assert 'enable left_wheel: enabled' in output and 'stop right_wheel: stopped' in output
     # The live table shows the command and both wheels at the profile's top speed (3 rad/s).
@@ -29,11 +36,7 @@ def test_demo_refuses_to_run_without_loopback_discovery():
 
 def test_agv_demo_cmd_vel_moves_both_wheels_on_one_line_and_survives_an_unplug():
     """Issue 5's done-when, without ros2 launch: bus_node + diff_drive on one RS-485 line."""
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([shutil.which('demo'), '--agv'], env=env, capture_output=True,
-                            text=True, timeout=90)
-    output = result.stdout + result.stderr
-    assert result.returncode == 0, output
+    output = run_demo('--agv')
     assert '-- right drive pulled off the line' in output
     assert 'offline' in output                       # the right drive, while unplugged
     assert 'reset_fault right_wheel: fault E35.03' in output
@@ -41,10 +44,6 @@ def test_agv_demo_cmd_vel_moves_both_wheels_on_one_line_and_survives_an_unplug()
 
 
 def test_canopen_demo():
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
-    result = subprocess.run([shutil.which('demo'), '--canopen'], env=env, capture_output=True,
-                            text=True, timeout=90)
-    output = result.stdout + result.stderr
-    assert result.returncode == 0, output
+    output = run_demo('--canopen')
     assert 'CiA 402 drives on a virtual CAN bus' in output
     assert 'both wheels followed the profile' in output
