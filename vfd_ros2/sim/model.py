@@ -81,6 +81,9 @@ class SimulatedDrive:
         self.fault_cause_present = False
         self.warning_code = 0
         self.silent = False
+        # Registers this unit refuses (answered "illegal address"), as a stricter or
+        # older firmware of the family would: e.g. a monitor value it does not have.
+        self.refused: set[int] = set()
         self.requests = 0
         self.last_command_value: int | None = None
         self._last_request: float | None = None
@@ -135,10 +138,21 @@ class SimulatedDrive:
         if function_code not in self.profile.modbus.function_codes:
             raise self.exception('illegal_function')
 
+    def refuse(self, codes: list[str]) -> None:
+        """Make the registers of these parameters answer "illegal address" from now on."""
+        with self.lock:
+            self.refused = set()
+            for code in codes:
+                parameter = self.profile.parameter(code)
+                self.refused.update(range(parameter.address,
+                                          parameter.address + parameter.register_count))
+
     def read(self, address: int, count: int) -> list[int]:
         with self.lock:
             if count < 1 or count > self.profile.modbus.max_read_registers:
                 raise self.exception('too_many_registers')
+            if self.refused.intersection(range(address, address + count)):
+                raise self.exception('illegal_address')
             if not self.profile.modbus.gaps_readable:
                 for offset in range(count):
                     if not self._documented(address + offset):
@@ -166,6 +180,8 @@ class SimulatedDrive:
             if len(values) > max(1, self.profile.modbus.max_write_registers):
                 raise self.exception('too_many_registers')
             address = self._resolve_write_address(address)
+            if self.refused.intersection(range(address, address + len(values))):
+                raise self.exception('illegal_address')
             offset = 0
             pending: list[tuple[Parameter, int]] = []
             while offset < len(values):

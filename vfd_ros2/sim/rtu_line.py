@@ -4,8 +4,11 @@ The line is a pseudo-terminal pair; the driver opens the slave side through a
 stable symlink (e.g. ``/tmp/vfd_sim/line0``) exactly as it would open
 ``/dev/ttyUSB0``. Frames are cut and checked with pymodbus' RTU framer (CRC,
 hunting over garbage) and answered with pymodbus PDUs, so every byte on the
-line is real Modbus RTU. Faults of the line itself can be injected: replies
-corrupted at a rate, drives that stop answering, and wire time at the baud rate.
+line is real Modbus RTU. Faults of the line itself can be injected
+(``LineFaults``): replies corrupted at a rate, late replies (a slave that
+answers after the master's timeout, and either keeps or drops what it heard
+meanwhile), write echoes that name another value, bytes trailing a reply;
+drives that stop answering; and wire time at the baud rate.
 
 Wire-time emulation (``emulate_wire_time``) makes the pseudo-terminal, which
 has no baud rate, behave like an RS-485 line at ``baudrate``:
@@ -52,8 +55,31 @@ class LineStats:
     replies: int = 0
     crc_errors: int = 0      # requests dropped for a bad CRC or garbage
     corrupted_replies: int = 0
+    late_replies: int = 0    # replies sent after the injected delay
+    wrong_echoes: int = 0    # write replies altered to name another value / count
+    trailing_garbage: int = 0  # replies followed by stray bytes
+    dropped_while_late: int = 0  # requests not heard while answering late (deaf)
     ignored: int = 0         # requests for absent or silent drives
     gap_violations: int = 0  # requests that began < t3.5 after the previous reply (emulated)
+
+
+@dataclass
+class LineFaults:
+    """What a hostile line does to replies; every rate is a fraction of replies (0..1).
+
+    ``late_delay`` is (min, max) seconds from the end of the request to the start
+    of a late reply (set it just beyond the master's timeout). A late slave with
+    ``late_deaf`` drops every request that arrives while it is busy (a
+    half-duplex transceiver that does not listen while it waits); otherwise it
+    answers them afterwards in order.
+    """
+
+    corrupt_rate: float = 0.0
+    late_rate: float = 0.0
+    late_delay: tuple[float, float] = (0.0, 0.0)
+    late_deaf: bool = False
+    wrong_echo_rate: float = 0.0
+    trailing_rate: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -70,7 +96,7 @@ class Exchange:
 #: hand reply bytes over at most this often (a UART's receive FIFO also batches)
 _CHUNK = 0.0003
 
-__all__ = ['Exchange', 'LineStats', 'SimulatedRtuLine', 'character_time']
+__all__ = ['Exchange', 'LineFaults', 'LineStats', 'SimulatedRtuLine', 'character_time']
 
 
 class SimulatedRtuLine:
@@ -80,7 +106,7 @@ class SimulatedRtuLine:
                  baudrate: int = 115200, parity: str = 'N', stopbits: int = 1,
                  emulate_wire_time: bool = False, corrupt_rate: float = 0.0,
                  tick_period: float = 0.005, seed: int | None = None,
-                 response_delay: float = 0.0) -> None:
+                 response_delay: float = 0.0, faults: LineFaults | None = None) -> None:
         self.drives = {drive.unit_id: drive for drive in drives}
         self.link_path = Path(link_path)
         self.baudrate = baudrate
@@ -93,7 +119,9 @@ class SimulatedRtuLine:
         self._wire_free = 0.0         # emulated: when the line's last byte ends
         self._last_reply_end = -1.0
         self._request_start: float | None = None
-        self.corrupt_rate = corrupt_rate
+        self.faults = faults or LineFaults()
+        if corrupt_rate:
+            self.faults.corrupt_rate = corrupt_rate
         self.tick_period = tick_period
         self.stats = LineStats()
         self.received: collections.deque[tuple[float, bytes]] = collections.deque(maxlen=4096)
@@ -142,11 +170,19 @@ class SimulatedRtuLine:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    @property
+    def corrupt_rate(self) -> float:
+        return self.faults.corrupt_rate
+
+    @corrupt_rate.setter
+    def corrupt_rate(self, rate: float) -> None:
+        self.faults.corrupt_rate = rate
+
     # --- serving --------------------------------------------------------------------
 
     def _serve(self) -> None:
         tighten_timer_slack()
-        buffer = b''
+        self._buffer = b''
         last_byte = time.monotonic()
         silence = max(3.5 * self.char_time, 0.002)
         while not self._stop.is_set():
@@ -163,75 +199,121 @@ class SimulatedRtuLine:
                 if chunk:
                     if self.emulate_wire_time:
                         start = max(now, self._wire_free)
-                        if not buffer:
+                        if not self._buffer:
                             self._request_start = start
                         self._wire_free = start + len(chunk) * self.char_time
-                    buffer += chunk
+                    self._buffer += chunk
                     last_byte = now
-            buffer = self._consume(buffer)
-            if buffer and now - last_byte > silence:
+            self._consume()
+            if self._buffer and now - last_byte > silence:
                 # RTU: 3.5 characters of silence end a frame; what is left is garbage.
                 self.stats.crc_errors += 1
-                buffer = b''
+                self._buffer = b''
             for drive in self.drives.values():
                 drive.tick()
 
-    def _consume(self, buffer: bytes) -> bytes:
-        while buffer:
+    def _consume(self) -> None:
+        while self._buffer:
             try:
-                used, pdu = self._framer.handleFrame(buffer, 0, 0)
+                used, pdu = self._framer.handleFrame(self._buffer, 0, 0)
             except ModbusException:
                 self.stats.crc_errors += 1
-                return b''
+                self._buffer = b''
+                return
             if pdu is None:
                 if used:
                     self.stats.crc_errors += 1
-                return buffer[used:]
-            request, buffer = buffer[:used], buffer[used:]
+                self._buffer = self._buffer[used:]
+                return
+            request, self._buffer = self._buffer[:used], self._buffer[used:]
             self.stats.frames += 1
+            end = self._wire_free if self.emulate_wire_time else time.monotonic()
+            start = self._request_start if self._request_start is not None else \
+                end - len(request) * self.char_time
+            self._request_start = None
             if self.emulate_wire_time:
-                self._emulate(request, pdu)
-                continue
-            self.received.append((time.monotonic(), request))
+                if self._last_reply_end >= 0 and start < self._last_reply_end + self.gap - 1e-6:
+                    self.stats.gap_violations += 1
+                self._wait_until(end)
+            self.received.append((end, request))
             reply = self._answer(pdu)
-            if reply is not None:
-                self._send(reply)
-        return buffer
+            if reply is None:
+                if self.emulate_wire_time:
+                    self.exchanges.append(Exchange(start, end, request, 0, end))
+                continue
+            reply, delay = self._inject(reply)
+            reply_end = self._transmit(reply, end + delay)
+            if self.emulate_wire_time:
+                self.exchanges.append(Exchange(start, end, request, len(reply), reply_end))
+            if delay and self.faults.late_deaf:
+                self._drop_heard_meanwhile()
 
-    def _emulate(self, request: bytes, pdu: ModbusPDU) -> None:
-        """Answer ``request`` in wire time (see the module docstring)."""
-        end = self._wire_free
-        start = self._request_start if self._request_start is not None else \
-            end - len(request) * self.char_time
-        self._request_start = None
-        if self._last_reply_end >= 0 and start < self._last_reply_end + self.gap - 1e-6:
-            self.stats.gap_violations += 1
-        self._wait_until(end)
-        self.received.append((end, request))
-        reply = self._answer(pdu)
-        if reply is None:
-            self.exchanges.append(Exchange(start, end, request, 0, end))
-            return
-        reply = self._maybe_corrupt(reply)
-        reply_start = end + self.gap + self.response_delay
-        reply_end = reply_start + len(reply) * self.char_time
+    def _inject(self, reply: bytes) -> tuple[bytes, float]:
+        """Apply the line's faults to one reply: (bytes to send, delay after the request)."""
+        faults, rng = self.faults, self._random
+        delay = self.gap + self.response_delay if self.emulate_wire_time else 0.0
+        if faults.late_rate and rng.random() < faults.late_rate:
+            self.stats.late_replies += 1
+            delay = rng.uniform(*faults.late_delay)
+        if faults.wrong_echo_rate and reply[1] in (6, 16) and \
+                rng.random() < faults.wrong_echo_rate:
+            self.stats.wrong_echoes += 1
+            reply = self._wrong_echo(reply)
+        if faults.corrupt_rate and rng.random() < faults.corrupt_rate:
+            self.stats.corrupted_replies += 1
+            reply = self._corrupt(reply)
+        if faults.trailing_rate and rng.random() < faults.trailing_rate:
+            self.stats.trailing_garbage += 1
+            reply += bytes(rng.randrange(256) for _ in range(rng.randint(1, 3)))
+        return reply, delay
+
+    def _transmit(self, reply: bytes, start: float) -> float:
+        """Put ``reply`` on the line from ``start``; return when its last byte ends.
+
+        With wire-time emulation the bytes reach the pty as each would finish on
+        the wire (see the module docstring); otherwise all at once at ``start``.
+        """
+        self._wait_until(start)
+        if not self.emulate_wire_time:
+            try:
+                os.write(self._master_fd, reply)
+                self.stats.replies += 1
+            except OSError:
+                pass
+            return time.monotonic()
+        reply_end = start + len(reply) * self.char_time
         written = 0
         while written < len(reply):
             # Wake for the next byte's end on the wire (at most every _CHUNK), then
             # hand over every byte that has finished by now: never one too early.
-            due_next = reply_start + (written + 1) * self.char_time
+            due_next = start + (written + 1) * self.char_time
             self._wait_until(min(max(due_next, time.monotonic() + _CHUNK), reply_end))
-            due = min(len(reply), int((time.monotonic() - reply_start) / self.char_time))
+            due = min(len(reply), int((time.monotonic() - start) / self.char_time))
             if due <= written:
                 continue
             try:
                 os.write(self._master_fd, reply[written:due])
             except OSError:
-                return
+                return reply_end
             written = due
         self._wire_free = self._last_reply_end = reply_end
         self.stats.replies += 1
-        self.exchanges.append(Exchange(start, end, request, len(reply), reply_end))
+        return reply_end
+
+    def _drop_heard_meanwhile(self) -> None:
+        """Lose the requests that arrived while a deaf slave was busy answering late."""
+        dropped = self._buffer
+        while select.select([self._master_fd], [], [], 0)[0]:
+            try:
+                chunk = os.read(self._master_fd, 4096)
+            except OSError:
+                break
+            if not chunk:
+                break
+            dropped += chunk
+        if dropped:
+            self.stats.dropped_while_late += 1
+        self._buffer = b''
 
     @staticmethod
     def _wait_until(moment: float) -> None:
@@ -247,19 +329,11 @@ class SimulatedRtuLine:
             return None
         return self._framer.buildFrame(reply)
 
-    def _maybe_corrupt(self, reply: bytes) -> bytes:
-        if self.corrupt_rate and self._random.random() < self.corrupt_rate:
-            self.stats.corrupted_replies += 1
-            return self._corrupt(reply)
-        return reply
-
-    def _send(self, reply: bytes) -> None:
-        reply = self._maybe_corrupt(reply)
-        try:
-            os.write(self._master_fd, reply)
-            self.stats.replies += 1
-        except OSError:
-            pass
+    def _wrong_echo(self, reply: bytes) -> bytes:
+        """Alter a write reply (06/16) to name another value (06) or count (16), CRC valid."""
+        body = bytearray(reply[:-2])
+        body[-1] ^= 0x01       # low byte of the echoed value / count
+        return bytes(body) + FramerRTU.compute_CRC(bytes(body)).to_bytes(2, 'big')
 
     def _corrupt(self, reply: bytes) -> bytes:
         kind = self._random.choice(('crc', 'truncate', 'wrong_id'))

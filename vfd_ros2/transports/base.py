@@ -20,15 +20,18 @@ class TransportParameter:
 
 @dataclass
 class TransportStats:
-    """Counters of one transport since it was created."""
+    """Counters of a transport (its whole link) or of one unit on it, since creation."""
 
     transactions: int = 0
     timeouts: int = 0
     bad_frames: int = 0
     exceptions: int = 0
     connect_failures: int = 0
+    late_replies: int = 0      # well-formed replies that came after their timeout (discarded)
     bytes_sent: int = 0
     bytes_received: int = 0
+    frames_sent: int = 0
+    frames_received: int = 0
 
     @property
     def errors(self) -> int:
@@ -54,6 +57,18 @@ class Transport(abc.ABC):
 
     def __init__(self) -> None:
         self.stats = TransportStats()
+        self._unit_stats: dict[int, TransportStats] = {}
+
+    def stats_for(self, unit: int) -> TransportStats:
+        """Return the counters of one unit (drive) on this link; ``stats`` sums the link."""
+        return self._unit_stats.setdefault(unit, TransportStats())
+
+    def count(self, unit: int | None, counter: str, amount: int = 1) -> None:
+        """Add to a counter of the link and, when the unit is known, of that unit."""
+        setattr(self.stats, counter, getattr(self.stats, counter) + amount)
+        if unit is not None:
+            unit_stats = self.stats_for(unit)
+            setattr(unit_stats, counter, getattr(unit_stats, counter) + amount)
 
     @classmethod
     @abc.abstractmethod

@@ -25,7 +25,7 @@ from pymodbus.pdu.register_message import (
 
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
 from ..profile import Profile
-from ..rtu_timing import character_time, reply_size
+from ..rtu_timing import character_time, frame_gap, reply_size
 from .base import RegisterTransport, TransportParameter
 from .rtu_link import LinkBadFrame, LinkLost, LinkTimeout, RtuLink
 
@@ -52,7 +52,11 @@ class _ModbusTransport(RegisterTransport):
     """What every Modbus transport shares: the requests, reply checks and counters.
 
     A subclass only implements ``_exchange``: put one request PDU on its link and
-    return the reply PDU, raising CommTimeout / BadFrame / TransportError.
+    return the reply PDU, raising CommTimeout / BadFrame / TransportError (and
+    counting them with ``count``). Every reply is checked against its request as
+    far as the protocol allows: unit and function (by the link), byte count of a
+    read, echoed address and value of a single write, address and count of a
+    multiple write.
     """
 
     def __init__(self, exception_codes: Mapping[int, str]) -> None:
@@ -64,40 +68,54 @@ class _ModbusTransport(RegisterTransport):
 
     def _execute(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self.open()
+        unit = request.dev_id
+        self.count(unit, 'frames_sent')
         reply = self._exchange(what, request, reply_bytes)
+        self.count(unit, 'frames_received')
         if isinstance(reply, ExceptionResponse):
-            self.stats.exceptions += 1
+            self.count(unit, 'exceptions')
             code = reply.exception_code
             raise ProtocolException(code, self._exception_text.get(code, 'unknown exception'),
                                     what)
         if reply.isError():
-            self.stats.bad_frames += 1
+            self.count(unit, 'bad_frames')
             raise BadFrame(f'{what}: error reply {reply}')
-        self.stats.transactions += 1
         return reply
+
+    def _mismatch(self, unit: int, what: str, problem: str) -> BadFrame:
+        self.count(unit, 'bad_frames')
+        return BadFrame(f'{what}: {problem}')
 
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
         what = f'read {count} @ {address:#06x} (unit {unit})'
         reply = self._execute(what, ReadHoldingRegistersRequest(
             address=address, count=count, dev_id=unit), reply_size(3, count))
         if len(reply.registers) != count:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: got {len(reply.registers)} registers')
+            raise self._mismatch(unit, what, f'got {len(reply.registers)} registers')
+        self.count(unit, 'transactions')
         return list(reply.registers)
 
     def write_register(self, unit: int, address: int, value: int) -> None:
+        value &= 0xFFFF
         what = f'write {value:#06x} @ {address:#06x} (unit {unit})'
         reply = self._execute(what, WriteSingleRegisterRequest(
-            address=address, registers=[value & 0xFFFF], dev_id=unit), reply_size(6))
-        if reply.address != address:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: echo names address {reply.address:#06x}')
+            address=address, registers=[value], dev_id=unit), reply_size(6))
+        echoed = reply.registers[0] if reply.registers else None
+        if reply.address != address or echoed != value:
+            # The spec's reply to 06 is an echo of the request: anything else was
+            # not this write's reply (or the drive did not store the value).
+            shown = 'nothing' if echoed is None else f'{echoed:#06x}'
+            raise self._mismatch(unit, what, f'echo names {shown} @ {reply.address:#06x}')
+        self.count(unit, 'transactions')
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
         what = f'write {len(values)} @ {address:#06x} (unit {unit})'
-        self._execute(what, WriteMultipleRegistersRequest(
+        reply = self._execute(what, WriteMultipleRegistersRequest(
             address=address, registers=[v & 0xFFFF for v in values], dev_id=unit),
             reply_size(16))
+        if reply.address != address or reply.count != len(values):
+            raise self._mismatch(unit, what, f'reply names {reply.count} @ {reply.address:#06x}')
+        self.count(unit, 'transactions')
 
 
 class _PymodbusTransport(_ModbusTransport):
@@ -124,10 +142,10 @@ class _PymodbusTransport(_ModbusTransport):
         try:
             connected = self._client.connect()
         except (OSError, ModbusException) as exc:
-            self.stats.connect_failures += 1
+            self.count(None, 'connect_failures')
             raise TransportError(f'cannot open {self.description}: {exc}') from exc
         if not connected:
-            self.stats.connect_failures += 1
+            self.count(None, 'connect_failures')
             raise TransportError(f'cannot open {self.description}')
 
     def close(self) -> None:
@@ -138,20 +156,21 @@ class _PymodbusTransport(_ModbusTransport):
 
     def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self._received = b''
+        unit = request.dev_id
         try:
             return self._client.execute(False, request)
         except ConnectionException as exc:
-            self.stats.connect_failures += 1
+            self.count(unit, 'connect_failures')
             self.close()
             raise TransportError(f'{what}: link lost ({self.description}): {exc}') from exc
         except ModbusIOException as exc:
             if self._received:
-                self.stats.bad_frames += 1
+                self.count(unit, 'bad_frames')
                 raise BadFrame(f'{what}: malformed reply {self._received.hex(" ")}') from exc
-            self.stats.timeouts += 1
+            self.count(unit, 'timeouts')
             raise CommTimeout(f'{what}: no reply from {self.description}') from exc
         except (ModbusException, OSError, ValueError) as exc:
-            self.stats.bad_frames += 1
+            self.count(unit, 'bad_frames')
             self.close()
             raise TransportError(f'{what}: {exc}') from exc
         finally:
@@ -170,6 +189,9 @@ class _RtuSettings:
         TransportParameter('frame_gap', -1.0,
                            's of line silence kept before each request; -1 = t3.5 for the '
                            'baud rate (3.5 characters, 1.75 ms above 19200 baud), 0 = none'),
+        TransportParameter('late_reply_guard', -1.0,
+                           's a unit is not asked again after it timed out, so that a late '
+                           'reply is discarded, not taken for the next one; -1 = timeout'),
     )
     port: str
     baudrate: int
@@ -181,22 +203,24 @@ class _RtuSettings:
     def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> Any:
         factory = profile.modbus.serial
         gap = float(settings.get('frame_gap', -1.0))
+        guard = float(settings.get('late_reply_guard', -1.0))
         return cls(port=str(settings['port']),
                    baudrate=int(settings['baudrate']) or factory.baudrate,
                    parity=str(settings['parity']) or factory.parity,
                    stopbits=int(settings['stopbits']) or factory.stopbits,
                    bytesize=factory.bytesize, timeout=float(settings['timeout']),
                    exception_codes=profile.modbus.exception_codes,
-                   frame_gap=gap if gap >= 0 else None)
+                   frame_gap=gap if gap >= 0 else None,
+                   late_reply_guard=guard if guard >= 0 else None)
 
     @property
     def description(self) -> str:
         return f'{self.port}@{self.baudrate}-{self.bytesize}{self.parity}{self.stopbits}'
 
     def wire_seconds(self, byte_count: int, frames: int) -> float:
-        """Characters on the wire plus the 3.5-character silence before each frame."""
+        """Characters on the wire plus the t3.5 silence each frame needs (rtu_timing)."""
         char = character_time(self.baudrate, self.parity, self.stopbits, self.bytesize)
-        return (byte_count + 3.5 * frames) * char
+        return byte_count * char + frames * frame_gap(self.baudrate, char)
 
 
 class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
@@ -211,7 +235,7 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  exception_codes: Mapping[int, str] | None = None,
-                 frame_gap: float | None = None) -> None:
+                 frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
         super().__init__(exception_codes or {})
         self.port = port
         self.baudrate = baudrate
@@ -220,7 +244,12 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
         self.bytesize = bytesize
         self.timeout = timeout
         self._link = RtuLink(port, baudrate, parity, stopbits, bytesize, timeout,
-                             frame_gap_s=frame_gap, on_bytes=self._count_bytes)
+                             frame_gap_s=frame_gap, late_reply_guard=late_reply_guard,
+                             on_bytes=self._count_bytes, on_discard=self._count_discarded)
+
+    @property
+    def late_reply_guard(self) -> float:
+        return self._link.late_reply_guard
 
     def _count_bytes(self, sending: bool, count: int) -> None:
         if sending:
@@ -228,44 +257,48 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
         else:
             self.stats.bytes_received += count
 
+    def _count_discarded(self, unit: int | None, kind: str) -> None:
+        self.count(unit, 'late_replies' if kind == 'late' else 'bad_frames')
+
     def open(self) -> None:
         if self._link.is_open:
             return
         try:
             self._link.open()
         except LinkLost as exc:
-            self.stats.connect_failures += 1
+            self.count(None, 'connect_failures')
             raise TransportError(f'cannot open {self.description}: {exc}') from exc
 
     def close(self) -> None:
         self._link.close()
 
     def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+        unit = request.dev_id
         try:
             return self._link.transact(request, reply_bytes)
         except LinkLost as exc:
-            self.stats.connect_failures += 1
+            self.count(unit, 'connect_failures')
             self.close()
             raise TransportError(f'{what}: link lost ({self.description}): {exc}') from exc
         except LinkTimeout as exc:
-            self.stats.timeouts += 1
+            self.count(unit, 'timeouts')
             raise CommTimeout(f'{what}: no reply from {self.description}') from exc
         except LinkBadFrame as exc:
-            self.stats.bad_frames += 1
-            raise BadFrame(f'{what}: malformed reply {exc.data.hex(" ")}') from exc
+            self.count(unit, 'bad_frames')
+            raise BadFrame(f'{what}: {exc} {exc.data.hex(" ")}') from exc
 
 
 class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
     """Modbus RTU on pymodbus' stock synchronous serial client (the reference).
 
-    ``frame_gap`` is accepted for a common signature but has no effect: the stock
-    client sends as soon as it is called.
+    ``frame_gap`` and ``late_reply_guard`` are accepted for a common signature but
+    have no effect: the stock client sends as soon as it is called.
     """
 
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  exception_codes: Mapping[int, str] | None = None,
-                 frame_gap: float | None = None) -> None:
+                 frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
         self.parity = parity

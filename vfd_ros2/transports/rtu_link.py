@@ -1,28 +1,37 @@
 """A thin Modbus RTU master over pyserial, framed and decoded by pymodbus.
 
 pymodbus builds every request frame (``FramerRTU.buildFrame`` over its request
-PDUs, so the bytes on the wire are exactly the stock client's) and decodes
-every reply (``FramerRTU.handleFrame``: CRC, PDU classes, exception replies).
-What this layer replaces is only how a transaction is driven, because the
-stock synchronous client (pymodbus 3.16 ``ModbusSerialClient``) does not know
-how long the reply is: it polls ``in_waiting`` with ``time.sleep`` of four
-character times (at least 1 ms) until the byte count stops growing, which
-costs two or more polling periods per reply (measured: ~2.5 ms per
-transaction over a pseudo-terminal with no wire delay, ~8 characters at low
-baud). Here:
+PDUs, so the bytes on the wire are exactly the stock client's), tells the
+length of a reply from its first bytes (its PDU classes'
+``calculateRtuFrameSize``) and decodes it. What this layer replaces is only how
+a transaction is driven, because the stock synchronous client (pymodbus 3.16
+``ModbusSerialClient``) does not know how long the reply is: it polls
+``in_waiting`` with ``time.sleep`` of four character times (at least 1 ms) until
+the byte count stops growing, which costs two or more polling periods per reply.
 
-- the reply length is known from the request (``rtu_timing.reply_size``; an
-  exception reply is recognised by its function byte after two bytes), so the
-  read blocks in ``select`` until exactly that many bytes are in, no sleeps;
-- deadlines follow the baud rate: the first byte must arrive within
-  ``timeout`` after the request left the wire, the rest within its own wire
-  time plus a margin (``completion_margin``: USB adapters deliver in bursts), so
-  a truncated reply costs milliseconds, not the full timeout;
-- before each request the line is kept silent for t3.5 after the last byte
-  received (the spec's inter-frame gap; a fast master on a real UART would
-  otherwise run two frames together);
-- after a garbled reply the line is drained until it is silent for t3.5, so the
-  next transaction starts in sync.
+Here every reply is one frame that must match its request:
+
+- the reply is read by its own length (from its header) in ``select``, no sleeps;
+  the first byte must arrive within ``timeout`` after the request left the wire,
+  the rest within its own wire time plus a margin (``completion_margin``: USB
+  adapters deliver in bursts);
+- a frame ends with t3.5 of silence (Modbus over Serial Line V1.02, 2.5.1.1): bytes
+  that follow a complete reply within t3.5 make it a bad frame, never a good
+  reply with garbage silently dropped;
+- a well-formed frame from another unit, or from this unit with another function
+  code, is a late reply to an earlier request: it is discarded (counted per unit)
+  and the wait for this request's reply goes on within the same deadline;
+- after a timeout on unit U the line is held for ``late_reply_guard``
+  before U is asked again: a reply that U sends late arrives in that window and is
+  discarded, instead of being read as the reply to U's next request of the same
+  length (which no field of a read reply could tell apart). Other units are
+  served meanwhile: a late reply of U cannot pass their unit id check;
+- before each request the line must have been silent for t3.5; whatever arrived
+  since the last transaction is stale and drained until t3.5 of silence.
+
+What stays undetectable, by the protocol: a read reply from U that comes later than
+``timeout + late_reply_guard`` and has the same function code and length as U's
+next request. ``late_reply_guard`` is therefore sized with ``timeout``.
 """
 
 from __future__ import annotations
@@ -38,6 +47,11 @@ from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
 from ..rtu_timing import character_time, frame_gap, tighten_timer_slack
+
+#: longest RTU frame (Modbus over Serial Line V1.02, 2.5.1.1: 256 bytes)
+MAX_FRAME = 256
+#: bytes that name a reply's length: unit, function code, byte count
+_HEADER = 3
 
 
 class LinkTimeout(Exception):
@@ -56,13 +70,18 @@ class LinkLost(Exception):
     """The port failed (unplugged adapter, closed pty)."""
 
 
+#: ``on_discard(unit, kind)``: a frame was dropped; ``unit`` is None for garbage
+DiscardCallback = Callable[[int | None, str], None]
+
+
 class RtuLink:
     """One serial port, one transaction at a time (the caller serialises)."""
 
     def __init__(self, port: str, baudrate: int, parity: str = 'N', stopbits: int = 1,
                  bytesize: int = 8, timeout: float = 0.1, frame_gap_s: float | None = None,
-                 completion_margin: float = 0.02,
-                 on_bytes: Callable[[bool, int], None] | None = None) -> None:
+                 completion_margin: float = 0.02, late_reply_guard: float | None = None,
+                 on_bytes: Callable[[bool, int], None] | None = None,
+                 on_discard: DiscardCallback | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
@@ -72,11 +91,14 @@ class RtuLink:
         self.char_time = character_time(baudrate, parity, stopbits, bytesize)
         self.gap = frame_gap(baudrate, self.char_time) if frame_gap_s is None else frame_gap_s
         self.completion_margin = completion_margin
+        self.late_reply_guard = timeout if late_reply_guard is None else late_reply_guard
         self._on_bytes = on_bytes or (lambda _sending, _count: None)
+        self._on_discard = on_discard or (lambda _unit, _kind: None)
         self._framer = FramerRTU(DecodePDU(is_server=False))
         self._serial: serial.Serial | None = None
         self._fd = -1
         self._quiet_from = 0.0     # monotonic time from which the line may be used again
+        self._hold: dict[int, float] = {}   # unit -> no request to it before (late replies)
         self._tuned_thread: int | None = None
 
     @property
@@ -95,6 +117,7 @@ class RtuLink:
         self._serial = port
         self._fd = port.fileno()
         self._quiet_from = time.monotonic() + self.gap
+        self._hold.clear()
 
     def close(self) -> None:
         port, self._serial, self._fd = self._serial, None, -1
@@ -104,15 +127,12 @@ class RtuLink:
             except (serial.SerialException, OSError):
                 pass
 
-    def build(self, request: ModbusPDU) -> bytes:
-        """Return the request's RTU frame, exactly as pymodbus' client would send it."""
-        return self._framer.buildFrame(request)
-
     def transact(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
-        """Send ``request`` and return the reply PDU (a normal or an exception reply).
+        """Send ``request`` and return its reply PDU (a normal or an exception reply).
 
-        Raises LinkTimeout (nothing came), LinkBadFrame (something else came)
-        or LinkLost (the port failed).
+        ``reply_bytes`` is the length of the normal reply (the wait for a reply
+        whose header is not readable). Raises LinkTimeout (nothing came),
+        LinkBadFrame (something else came) or LinkLost (the port failed).
         """
         if self._serial is None:
             self.open()
@@ -120,84 +140,158 @@ class RtuLink:
             tighten_timer_slack()
             self._tuned_thread = threading.get_ident()
         frame = self._framer.buildFrame(request)
+        unit = request.dev_id
         try:
-            self._discard_stale_input()
-            wait = self._quiet_from - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
+            self._wait_until_quiet(unit)
             sent_at = time.monotonic()
             self._write(frame)
             self._on_bytes(True, len(frame))
-            on_wire_until = sent_at + len(frame) * self.char_time
-            data = self._receive(reply_bytes, on_wire_until + self.timeout)
-            self._quiet_from = time.monotonic() + self.gap
-            if not data:
-                raise LinkTimeout('no reply')
-            used, pdu = self._decode(data)
-            if pdu is None or pdu.dev_id != request.dev_id or \
-                    (pdu.function_code & 0x7F) != request.function_code or used < len(data):
-                self._resync()
-                raise LinkBadFrame('malformed reply', data)
+            deadline = sent_at + len(frame) * self.char_time + self.timeout
+            while True:
+                data = self._read_frame(deadline, reply_bytes)
+                if not data:
+                    self._hold[unit] = time.monotonic() + self.late_reply_guard
+                    self._quiet_from = time.monotonic()
+                    raise LinkTimeout('no reply')
+                pdu = self._decode(data)
+                if pdu is None:
+                    self._resync()
+                    raise LinkBadFrame('malformed reply', data)
+                if pdu.dev_id != unit or (pdu.function_code & 0x7F) != request.function_code:
+                    # A late reply to an earlier request (of this or another unit).
+                    self._on_discard(pdu.dev_id, 'late')
+                    continue
+                trailing = self._silence_after()
+                if trailing:
+                    raise LinkBadFrame('bytes after the reply', data + trailing)
+                return pdu
         except (OSError, serial.SerialException) as exc:
             self.close()
             raise LinkLost(str(exc)) from exc
-        return pdu
 
     # --- internals ----------------------------------------------------------------
 
-    def _decode(self, data: bytes) -> tuple[int, ModbusPDU | None]:
+    def _decode(self, data: bytes) -> ModbusPDU | None:
+        """Return the PDU of exactly one well-formed frame (CRC checked), else None.
+
+        pymodbus' decoder hunts over leading garbage and drops trailing bytes; a
+        master must not, so the frame is checked to start at byte 0 and to end
+        at the last byte.
+        """
+        if len(data) < 4 or self._frame_size(data) != len(data):
+            return None
+        if FramerRTU.compute_CRC(data[:-2]) != int.from_bytes(data[-2:], 'big'):
+            return None
         try:
-            return self._framer.handleFrame(data, 0, 0)
+            used, pdu = self._framer.handleFrame(data, 0, 0)
         except Exception:  # noqa: BLE001 - pymodbus raises several kinds on garbage
-            return len(data), None
+            return None
+        if pdu is None or used != len(data) or pdu.dev_id != data[0]:
+            return None
+        return pdu
+
+    def _frame_size(self, header: bytes) -> int:
+        """Return the length a frame announces in its first bytes (0: not yet / unknown)."""
+        if len(header) < 2:
+            return 0
+        try:
+            pdu_class = self._framer.decoder.lookupPduClass(header)
+            size = pdu_class.calculateRtuFrameSize(header) if pdu_class else 0
+        except Exception:  # noqa: BLE001 - an unknown or garbled header
+            return 0
+        return size if 4 <= size <= MAX_FRAME else 0
 
     def _write(self, frame: bytes) -> None:
         written = os.write(self._fd, frame)
         if written != len(frame) and self._serial is not None:
             self._serial.write(frame[written:])
 
-    def _discard_stale_input(self) -> None:
-        # A late reply to an earlier (timed-out) request must not be taken for this one.
-        while select.select([self._fd], [], [], 0)[0]:
-            stale = os.read(self._fd, 4096)
-            if not stale:
-                raise OSError('port closed')
-            self._on_bytes(False, len(stale))
-            self._quiet_from = time.monotonic() + self.gap
+    def _read_frame(self, first_deadline: float, expected: int) -> bytes:
+        """Read one frame: its first byte by ``first_deadline``, then its own length.
 
-    def _receive(self, expected: int, first_deadline: float) -> bytes:
-        """Read exactly ``expected`` bytes (5 if it is an exception reply) or until a deadline."""
+        The length comes from the frame's header once its first bytes are in
+        (``expected`` until then); the rest must follow at the baud rate. Returns
+        b'' when nothing came, possibly an incomplete frame when the rest did not.
+        """
         fd = self._fd
         data = b''
         deadline = first_deadline
-        while len(data) < expected:
+        first_at = 0.0
+        size = 0
+        while True:
+            # The header first, then exactly the announced rest: never read into
+            # the frame that may follow (a late reply is followed by the real one).
+            target = size or (_HEADER if len(data) < _HEADER else expected)
+            if len(data) >= target:
+                break
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
                 break
-            if not select.select([fd], [], [], remaining)[0]:
-                break
-            chunk = os.read(fd, expected - len(data))
+            chunk = os.read(fd, target - len(data))
             if not chunk:
                 raise OSError('port closed')
             if not data:
-                # The rest follows at the baud rate; allow bursty USB adapters a margin.
-                deadline = time.monotonic() + (expected - len(chunk)) * self.char_time \
-                    + self.completion_margin
+                first_at = time.monotonic()
             data += chunk
-            if len(data) >= 2 and data[1] & 0x80:
-                expected = 5      # unit, function | 0x80, exception code, CRC
+            size = size or self._frame_size(data)
+            # The rest follows at the baud rate; allow bursty USB adapters a margin.
+            deadline = first_at + max(size or expected, len(data)) * self.char_time \
+                + self.completion_margin
         self._on_bytes(False, len(data))
         return data
 
-    def _resync(self) -> None:
-        """Drop whatever is still arriving until the line has been silent for t3.5."""
+    def _silence_after(self) -> bytes:
+        """Wait t3.5 after a frame; return what arrived instead of silence (drained)."""
+        if select.select([self._fd], [], [], self.gap)[0]:
+            return self._drain()
+        self._quiet_from = time.monotonic()
+        return b''
+
+    def _wait_until_quiet(self, unit: int) -> None:
+        """Keep the line silent for t3.5, and for unit's late-reply guard after a timeout.
+
+        Anything that arrives meanwhile is stale: drained and counted (a late reply
+        from ``unit`` ends its guard early: the line is known quiet then).
+        """
+        hold_until = self._hold.pop(unit, 0.0)
+        if select.select([self._fd], [], [], 0)[0]:
+            if unit in self._count_discarded(self._drain()):
+                hold_until = 0.0
+        while (remaining := max(self._quiet_from, hold_until) - time.monotonic()) > 0:
+            if select.select([self._fd], [], [], remaining)[0]:
+                if unit in self._count_discarded(self._drain()):
+                    hold_until = 0.0
+
+    def _drain(self) -> bytes:
+        """Read whatever is arriving until the line has been silent for t3.5."""
         silence = max(self.gap, 0.002)
-        limit = time.monotonic() + self.timeout
+        limit = time.monotonic() + max(self.timeout, 0.05)
+        data = b''
         while time.monotonic() < limit:
             if not select.select([self._fd], [], [], silence)[0]:
                 break
-            garbage = os.read(self._fd, 4096)
-            if not garbage:
+            chunk = os.read(self._fd, 4096)
+            if not chunk:
                 raise OSError('port closed')
-            self._on_bytes(False, len(garbage))
-        self._quiet_from = time.monotonic() + self.gap
+            data += chunk
+        self._on_bytes(False, len(data))
+        self._quiet_from = time.monotonic()
+        return data
+
+    def _resync(self) -> None:
+        """After a garbled reply: drop what is still arriving until t3.5 of silence."""
+        self._count_discarded(self._drain())
+
+    def _count_discarded(self, data: bytes) -> set[int]:
+        """Report drained bytes as late frames (by unit) or garbage; return the units."""
+        units: set[int] = set()
+        while data:
+            size = self._frame_size(data)
+            pdu = self._decode(data[:size]) if size and size <= len(data) else None
+            if pdu is None:
+                self._on_discard(None, 'garbage')
+                break
+            units.add(pdu.dev_id)
+            self._on_discard(pdu.dev_id, 'late')
+            data = data[size:]
+        return units

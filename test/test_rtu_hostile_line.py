@@ -1,0 +1,157 @@
+"""The RTU master against a hostile line: late replies, wrong echoes, trailing bytes.
+
+Real frames over a pseudo-terminal (``SimulatedRtuLine`` with ``LineFaults``). A
+phantom value is a read that returns registers the requested address does not
+hold: the target is none, whatever the line does.
+"""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from unit_support import shipped_profile
+from vfd_ros2.errors import BadFrame, CommTimeout, ProtocolException, TransportError
+from vfd_ros2.sim.model import SimulatedDrive
+from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
+from vfd_ros2.transports.modbus import ModbusRtuTransport
+
+TIMEOUT = 0.03
+#: replies this much after the master's timeout (the guard, = timeout, covers them)
+LATE = (TIMEOUT + 0.003, TIMEOUT + 0.028)
+
+
+def distinct_drive(unit: int) -> tuple[SimulatedDrive, list[tuple[int, list[int]]]]:
+    """Make a drive whose read-write parameters hold distinct values, in 5-register blocks."""
+    profile = shipped_profile('boneng_am')
+    drive = SimulatedDrive(profile, unit)
+    blocks: list[tuple[int, list[int]]] = []
+    group = ['B00', 'B01', 'B02', 'B03', 'B04', 'B05', 'B06', 'B07']
+    for prefix in group:
+        codes = sorted((p for p in profile.parameters.values()
+                        if p.code.startswith(prefix) and p.register_count == 1),
+                       key=lambda p: p.address)
+        for start in range(0, len(codes) - 5, 5):
+            chunk = codes[start:start + 5]
+            if chunk[-1].address - chunk[0].address != 4:
+                continue
+            values = [(unit << 12) ^ (p.address & 0x0FFF) for p in chunk]
+            for parameter, value in zip(chunk, values):
+                drive.words[parameter.address] = value
+            blocks.append((chunk[0].address, values))
+    assert len(blocks) >= 6, 'enough same-length blocks to confuse a naive master'
+    return drive, blocks
+
+
+def run_reads(transport, plan, transactions, rng):
+    """Read random blocks; return (good, phantoms, failures)."""
+    good = phantoms = failures = 0
+    for _ in range(transactions):
+        unit, address, expected = rng.choice(plan)
+        try:
+            words = transport.read_registers(unit, address, len(expected))
+        except (CommTimeout, BadFrame):
+            failures += 1
+            continue
+        if words == expected:
+            good += 1
+        else:
+            phantoms += 1
+    return good, phantoms, failures
+
+
+@pytest.mark.parametrize('deaf', [False, True], ids=['buffering slave', 'deaf slave'])
+def test_late_replies_never_become_phantom_values(tmp_path, deaf):
+    drive, blocks = distinct_drive(1)
+    faults = LineFaults(late_rate=0.1, late_delay=LATE, late_deaf=deaf)
+    line = SimulatedRtuLine([drive], tmp_path / 'line', baudrate=115200, faults=faults,
+                            seed=7, tick_period=0.001).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    try:
+        plan = [(1, address, values) for address, values in blocks]
+        good, phantoms, failures = run_reads(transport, plan, 1000, random.Random(3))
+    finally:
+        transport.close()
+        line.stop()
+    assert line.stats.late_replies >= 60, 'the line really answered late'
+    assert phantoms == 0
+    assert failures >= line.stats.late_replies * 0.9, 'each late reply costs its transaction'
+    assert good + failures == 1000
+    unit = transport.stats_for(1)
+    assert unit.timeouts >= line.stats.late_replies * 0.9
+    assert unit.late_replies >= line.stats.late_replies * 0.9, 'late replies seen and counted'
+
+
+def test_late_replies_on_a_bus_of_two(tmp_path):
+    """A late reply of one unit is never taken for another unit's, nor its own next."""
+    drive1, blocks1 = distinct_drive(1)
+    drive2, blocks2 = distinct_drive(2)
+    faults = LineFaults(late_rate=0.1, late_delay=LATE)
+    line = SimulatedRtuLine([drive1, drive2], tmp_path / 'line', baudrate=115200,
+                            faults=faults, seed=11, tick_period=0.001).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    try:
+        plan = [(1, a, v) for a, v in blocks1] + [(2, a, v) for a, v in blocks2]
+        good, phantoms, failures = run_reads(transport, plan, 1000, random.Random(5))
+    finally:
+        transport.close()
+        line.stop()
+    assert line.stats.late_replies >= 60
+    assert phantoms == 0
+    assert good >= 800
+
+
+def test_single_write_echo_must_name_the_written_value(tmp_path):
+    drive, _ = distinct_drive(1)
+    line = SimulatedRtuLine([drive], tmp_path / 'line', faults=LineFaults(wrong_echo_rate=1.0),
+                            tick_period=0.001).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    address = drive.profile.parameter('B04.02').address
+    try:
+        with pytest.raises(BadFrame, match='echo names'):
+            transport.write_register(1, address, 25)
+        with pytest.raises(BadFrame, match='reply names'):
+            transport.write_registers(1, address, [25, 26])
+        line.faults.wrong_echo_rate = 0.0
+        transport.write_register(1, address, 27)     # an honest echo is accepted
+    finally:
+        transport.close()
+        line.stop()
+    assert transport.stats_for(1).bad_frames == 2
+    assert transport.stats_for(1).transactions == 1
+
+
+def test_bytes_after_a_reply_make_it_a_bad_frame(tmp_path):
+    drive, blocks = distinct_drive(1)
+    line = SimulatedRtuLine([drive], tmp_path / 'line', faults=LineFaults(trailing_rate=1.0),
+                            tick_period=0.001).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    address, values = blocks[0]
+    try:
+        with pytest.raises(BadFrame, match='bytes after the reply'):
+            transport.read_registers(1, address, len(values))
+        line.faults.trailing_rate = 0.0
+        assert transport.read_registers(1, address, len(values)) == values
+    finally:
+        transport.close()
+        line.stop()
+    assert transport.stats_for(1).bad_frames == 1
+
+
+def test_refused_register_is_a_protocol_exception_not_a_comm_failure(tmp_path):
+    drive, _ = distinct_drive(1)
+    drive.refuse(['A00.15'])
+    line = SimulatedRtuLine([drive], tmp_path / 'line', tick_period=0.001).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT,
+                                   exception_codes=drive.profile.modbus.exception_codes)
+    address = drive.profile.parameter('A00.15').address
+    try:
+        with pytest.raises(ProtocolException) as info:
+            transport.read_registers(1, address, 1)
+    finally:
+        transport.close()
+        line.stop()
+    assert info.value.code == 2 and 'illegal address' in info.value.text
+    assert not isinstance(info.value, TransportError)
+    assert transport.stats_for(1).exceptions == 1 and transport.stats_for(1).timeouts == 0
