@@ -71,7 +71,9 @@ def test_parameters_and_abort_codes(make_can_harness):
     for name, bad, why in (('0x6083', 2e6, 'above the maximum'),
                            ('0x6083', math.nan, 'not a finite number'),
                            ('statusword', 0.0, 'read-only'),
-                           ('operating_mode', 5.0, 'not one of the options'),
+                           ('quick_stop_option_code', 3.0, 'not one of the options'),
+                           ('operating_mode', 1.0, 'not written through parameters'),
+                           ('controlword', 15.0, 'not written through parameters'),
                            ('no_such_parameter', 1.0, 'unknown parameter')):
         reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
                            SetDriveParameter.Request(name=name, value=bad, persistent=False))

@@ -233,7 +233,8 @@ def test_drive_polls_over_the_plugin_transport(plugin):
     regs[0x200F] = words(-12)             # A00.15 heatsink: -12 degC
     regs[0x2100] = 35                     # A01.00 fault code
     regs[0x2101] = 3                      # A01.01 sub-code
-    regs[0xE101] = 1                      # P01.01 ready for run
+    regs[0xE100] = 1                      # P01.00 ready for switch-on (idle readiness)
+    regs[0xE101] = 1                      # P01.01 ready to run (the run command is on)
     regs[0xE102] = 1                      # P01.02 running
 
     drive.open()
@@ -247,11 +248,11 @@ def test_drive_polls_over_the_plugin_transport(plugin):
     assert reading.values['temperature'] == -12
     # -665 rpm at the motor through 10:1 = -66.5 rpm at the wheel.
     assert reading.measured_velocity == pytest.approx(-66.5 * 2 * math.pi / 60)
-    assert reading.flags == {'ready': True, 'running': True, 'fault': True,
-                             'warning': False, 'reverse': True}
+    assert reading.flags == {'ready': True, 'run_requested': True, 'running': True,
+                             'fault': True, 'warning': False, 'reverse': True}
     assert reading.fault.display == 'E35.03'
     assert reading.fault.name == 'Communication exception'
-    assert reading.raw_words == {'A00.00': 0, 'P01.01': 1, 'P01.02': 1}
+    assert reading.raw_words == {'A00.00': 0, 'P01.00': 1, 'P01.01': 1, 'P01.02': 1}
 
     # The reads honour the profile's limits: at most 5 registers, never an
     # undocumented address (gaps_readable is false for this drive).

@@ -121,15 +121,35 @@ class Bus:
             controller.between_reads = self.write_pending_commands
         rate = float(config.settings.get('control_rate', 50.0))
         self.period = 1.0 / rate
+        self.addressing_interval = self._addressing_interval()
+        for controller in self.controllers.values():
+            controller.plan_host_loss(self.addressing_interval)
         self._loop: CycleLoop | None = None
         self._lock = threading.Lock()
-        self._window: tuple[float, int] = (clock(), 0)
-        self._rate = 0.0
+        self._window: tuple[float, float, int] = (clock(), 0.0, 0)
+        self._connect_turn = 0
+
+    def _addressing_interval(self) -> float:
+        """Worst-case time between two requests to any drive of this bus.
+
+        One cycle of every drive (or the control period, if longer), plus what a
+        cycle may add: one connect or one failed exchange (a bus connects or
+        retries at most one offline drive per cycle) and one service action.
+        """
+        controllers = list(self.controllers.values())
+        drives = [c.drive for c in controllers]
+        cycle = sum(drive.cycle_seconds() for drive in drives)
+        extra = max(max(d.connect_seconds() for d in drives),
+                    max(t.failed_exchange_seconds() for t in self.transports))
+        return max(self.period, cycle) + extra + max(d.action_seconds() for d in drives)
 
     def step(self) -> None:
         controllers = list(self.controllers.values())
+        due = [c for c in controllers if c.connect_due]
+        chosen = due[self._connect_turn % len(due)] if due else None
+        self._connect_turn += 1
         for controller in controllers:          # commands first, for every drive ...
-            controller.command_phase()
+            controller.command_phase(connect_allowed=controller is chosen)
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
@@ -156,23 +176,24 @@ class Bus:
             self._loop.stop(timeout)
             self._loop = None
 
+    def link_stats(self) -> TransportStats:
+        """Return the counters of the whole link (every drive, and traffic no drive owns)."""
+        all_stats = [t.stats for t in self.transports]
+        return TransportStats(**{name: sum(getattr(s, name) for s in all_stats)
+                                 for name in TransportStats.__dataclass_fields__})
+
     def statistics(self) -> BusStatistics:
         """Figures since the previous call (transactions/s, wire utilisation)."""
-        all_stats = [t.stats for t in self.transports]
-        stats = TransportStats(**{name: sum(getattr(s, name) for s in all_stats)
-                                  for name in TransportStats.__dataclass_fields__})
+        stats = self.link_stats()
         now = self._clock()
+        wire = self.transport.wire_seconds(stats.bytes_sent + stats.bytes_received,
+                                           stats.frames_sent + stats.frames_received)
         with self._lock:
-            then, before = self._window
-            wire_before = getattr(self, '_wire_before', 0.0)
+            then, wire_before, before = self._window
             elapsed = max(now - then, 1e-6)
-            transactions = stats.transactions + stats.errors
             rate = (stats.transactions - before) / elapsed
-            wire = self.transport.wire_seconds(stats.bytes_sent + stats.bytes_received,
-                                               transactions * 2)
             utilisation = None if wire is None else (wire - wire_before) / elapsed
-            self._window = (now, stats.transactions)
-            self._wire_before = wire or 0.0
+            self._window = (now, wire or 0.0, stats.transactions)
         return BusStatistics(
             transactions_per_second=rate, errors=stats.errors, timeouts=stats.timeouts,
             bad_frames=stats.bad_frames, utilisation=utilisation,

@@ -21,7 +21,7 @@ import time
 from typing import Callable
 
 from .cia402 import Command, Goal, State, StatusBit, decode_state, next_command
-from .drive import ParameterValue, Reading
+from .drive import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading
 from .errors import ParameterError, ProfileError, ProtocolException, TransportError
 from .faults import NO_FAULT, FaultInfo, describe_fault
 from .profile import (
@@ -35,6 +35,7 @@ from .profile import (
     ValueType,
 )
 from .scaling import VelocityScaling
+from .transports.base import TransportStats
 from .transports.canopen import CanopenTransport, NmtCommand, NmtState
 
 log = logging.getLogger(__name__)
@@ -118,12 +119,42 @@ class CanopenDrive:
     def hardware_id(self) -> str:
         return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
 
+    @property
+    def stats(self) -> TransportStats:
+        return self.transport.stats
+
     def open(self) -> None:
         self.transport.open()
 
     def close(self) -> None:
         self._configured = False
         self.transport.close()
+
+    # --- timing (an RPDO per cycle; SDO only at connect and for services) ---------------
+
+    def cycle_seconds(self) -> float:
+        return 0.0
+
+    def connect_seconds(self) -> float:
+        return 0.0
+
+    def action_seconds(self) -> float:
+        return 4 * self.transport.exchange_seconds(8, 8)     # SDO request and reply frames
+
+    def host_loss_plan(self, requested: float, interval: float) -> HostLossProtection:
+        """RPDO deadline monitoring (0x1400:05) where the profile has it."""
+        if not self.spec.rpdo_deadline:
+            return HostLossProtection(requested=requested, note=(
+                f'{self.profile.name} documents no RPDO deadline over CANopen: only the host '
+                'watchdog stops the motor, not a dead host'))
+        if requested == 0:
+            return HostLossProtection(requested=0.0, note='off, as drive_comm_timeout 0 asks')
+        minimum = 2 * interval + HOST_LOSS_JITTER
+        value = max(requested, minimum)
+        note = '' if value == requested else (
+            f'raised from {requested:g} s: the RPDO is sent every {interval * 1000:.0f} ms')
+        value = min(math.ceil(value * 1000) / 1000, 65.535)
+        return HostLossProtection('RPDO1 deadline 0x1400:05', value, requested, note)
 
     def forget_state(self) -> None:
         self._configured = False
@@ -140,7 +171,8 @@ class CanopenDrive:
     def _read(self, obj: CanObject) -> int:
         return self.transport.read_object(obj.index, obj.subindex, obj.type)
 
-    def configure(self, drive_comm_timeout: float, apply_commissioning: bool) -> list[str]:
+    def configure(self, protection: HostLossProtection,
+                  apply_commissioning: bool) -> list[str]:
         """Map the PDOs, set heartbeat and mode over SDO, then start the node (NMT)."""
         t = self.transport
         node = self.unit_id
@@ -163,7 +195,7 @@ class CanopenDrive:
                 t.write_object(mapping, sub, u32, obj.mapping)
             t.write_object(mapping, 0, u8, len(rpdo))
             if spec.rpdo_deadline:
-                t.write_object(comm, 5, u16, min(round(drive_comm_timeout * 1000), 0xFFFF))
+                t.write_object(comm, 5, u16, min(round(protection.timeout * 1000), 0xFFFF))
             t.write_object(comm, 1, u32, cob)
         for number in range(spec.tpdos):
             comm, mapping, cob = 0x1800 + number, 0x1A00 + number, 0x180 + 0x100 * number + node
@@ -234,8 +266,12 @@ class CanopenDrive:
             return Goal.QUICK_STOP
         return Goal.SWITCHED_ON
 
-    def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None:
-        """One control cycle: one RPDO with control word and target velocity."""
+    def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
+              reassert: bool = False) -> None:
+        """One control cycle: one RPDO with control word and target velocity.
+
+        The RPDO carries the control word every cycle, so ``reassert`` needs nothing more.
+        """
         if not self._configured:
             # Connect: before the PDOs exist, zero the setpoint and idle over SDO.
             if self.cia402:
@@ -400,16 +436,24 @@ class CanopenDrive:
         raw = self._read_parameter(parameter)
         return ParameterValue(parameter, raw, parameter.from_raw(raw))
 
-    def set_parameter(self, key: str, value: float, persistent: bool,
-                      running: bool) -> tuple[ParameterValue, str]:
-        """Validate (access, range, resolution, type), SDO download, read back."""
+    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
+        """Validate a write without touching the drive; ParameterError says why not."""
         parameter = self._object_of(self.profile.parameter(key))
+        owner = self.profile.control_owned.get(parameter.code)
+        if owner is not None:
+            raise ParameterError(f'{parameter.code} ({parameter.description}) is not written '
+                                 f'through parameters: {owner}')
         if parameter.access is Access.READ_ONLY:
             raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
         if parameter.access is Access.WRITE_WHEN_STOPPED and running:
             raise ParameterError(
                 f'{parameter.code} can only be changed while the drive is stopped')
-        raw = parameter.to_raw(value)
+        return parameter, parameter.to_raw(value)
+
+    def set_parameter(self, key: str, value: float, persistent: bool,
+                      running: bool) -> tuple[ParameterValue, str]:
+        """Validate (access, range, resolution, type), SDO download, read back."""
+        parameter, raw = self.check_write(key, value, running)
         self.transport.write_object(parameter.index, parameter.subindex, parameter.type, raw)
         readback = self._read_parameter(parameter)
         if readback != raw:

@@ -42,7 +42,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline'),
     Setting('reconnect_period', 0.5, 's between reconnect attempts'),
     Setting('drive_comm_timeout', 0.3,
-            "s written to the drive's own comm-loss timeout at connect; 0 = disable it"),
+            "s written to the drive's own comm-loss timeout at connect (raised to fit the bus, "
+            'and reported); 0 = disable it'),
     Setting('apply_commissioning', True,
             "write the profile's bus-control settings at connect when they differ"),
     Setting('auto_enable', False, 'enable at start-up (motion still needs fresh commands)'),
@@ -114,4 +115,6 @@ def build_controller(values: Mapping[str, Any],
     extra = {'owns_transport': False} if shared else {}
     drive = drive_class(profile, transport, int(merged['transport.unit_id']),
                         velocity_scaling(profile, merged), **extra)
-    return DriveController(drive, controller_config(merged))
+    controller = DriveController(drive, controller_config(merged))
+    controller.plan_host_loss()     # alone on its link; a bus re-plans for all its drives
+    return controller

@@ -8,9 +8,16 @@ slow verification never holds up the watchdog or the status.
 Safety rules kept here, in one place:
 - start-up and every reconnect write a zero setpoint and the idle command
   before anything else, and forget all earlier velocity commands;
-- the drive runs only while enabled, not stopped, fault-free, online and fed
-  with fresh commands (the command watchdog);
-- after a fault motion resumes only after a successful ``reset_fault``.
+- the drive runs only while enabled, not stopped, fault-free, online, its run
+  and fault state readable, and fed with fresh commands (the command watchdog):
+  one rule, ``_permit``, decides both what is written and what is reported;
+- after a fault motion resumes only after a successful ``reset_fault``; the one
+  exception is the drive's own comm-loss fault found at connect, which the
+  driver's absence caused: it is reset once the stop is written;
+- a drive that reports running while the host has it idle gets the idle command
+  again every cycle (counted as an unexpected start), whatever was sent last;
+- the drive's own comm-loss timeout is sized for the bus it is on
+  (``plan_host_loss``), and reported.
 """
 
 from __future__ import annotations
@@ -25,10 +32,26 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Callable, Generator, Iterator
 
-from .drive import Drive, ParameterValue, Reading
-from .errors import ParameterError, ProtocolException, TransportError, VfdError
+from .drive import Drive, HostLossProtection, ParameterValue, Reading
+from .errors import ParameterError, ProtocolException, TransportError, VfdError, quote
 from .faults import NO_FAULT, FaultInfo
 from .watchdog import CommandWatchdog
+
+
+class RunState(enum.IntEnum):
+    """Why the drive does or does not follow velocity commands (DriveStatus.STATE_*)."""
+
+    OFFLINE = 0
+    FAULT = 1
+    DISABLED = 2
+    STOPPED = 3
+    BLOCKED = 4
+    WATCHDOG = 5
+    RUNNING = 6
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +111,7 @@ class DriveState:
     warning: bool = False
     at_speed: bool = False
     watchdog_tripped: bool = False
-    state: str = 'offline'
+    mode: RunState = RunState.OFFLINE
     stop_reason: str = 'not connected yet'
     status_words: tuple[tuple[str, int], ...] = ()
     commanded_velocity: float = 0.0
@@ -104,9 +127,20 @@ class DriveState:
     bad_frames: int = 0
     exceptions: int = 0
     reconnects: int = 0
+    late_replies: int = 0
     rejected_commands: int = 0
     clamped_commands: int = 0
+    unexpected_starts: int = 0      # the drive started although the host had it idle
+    comm_faults_cleared: int = 0    # comm-loss faults of the driver's absence reset at connect
+    loop_errors: int = 0            # exceptions inside the loop: each one is a bug
     last_error: str = ''
+    protection: HostLossProtection = HostLossProtection()
+    unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
+
+    @property
+    def state(self) -> str:
+        """The run state as one lower-case word (DriveStatus.state)."""
+        return self.mode.label
 
 
 Action = Generator[None, None, ActionResult]
@@ -136,6 +170,7 @@ class CycleLoop:
         self._wake = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
+        self.errors = 0
 
     def start(self) -> None:
         self._thread.start()
@@ -155,6 +190,7 @@ class CycleLoop:
         try:
             call()
         except Exception as exc:  # noqa: BLE001 - the loop must survive anything
+            self.errors += 1
             log.exception('%s: loop error: %s', self.name, exc)
 
     def _run(self) -> None:
@@ -202,20 +238,61 @@ class DriveController:
         self._cycle = 0
         self._last_error = ''
         self._reading = Reading()
-        self._actions: queue.SimpleQueue[tuple[Callable[[], Action], Future]] = \
+        self._settings_refused: tuple[str, ...] = ()
+        # (coalescing key or None, factory, future); trigger actions asked again while
+        # one is waiting are answered with its result (a burst of ~/enable calls).
+        self._actions: queue.SimpleQueue[tuple[str | None, Callable[[], Action], Future]] = \
             queue.SimpleQueue()
-        self._current: tuple[Iterator[None], Future] | None = None
+        self._backlog: list[tuple[str | None, Callable[[], Action], Future]] = []
+        self._action_factories: dict[str, Callable[..., Action]] = {
+            'enable': self._action_enable, 'disable': self._action_disable,
+            'stop': self._action_stop, 'reset_fault': self._action_reset_fault,
+            'get_parameter': self._action_get_parameter,
+            'set_parameter': self._action_set_parameter}
+        self._current: tuple[Iterator[None], list[Future]] | None = None
         self._loop: CycleLoop | None = None
         self._cycle_ok = False
         self._command_pending = False
         self._failed_this_cycle = False
+        self._run_written = False        # what the last command write asked: run or idle
+        self._reassert_idle = False      # the drive runs although the host has it idle
+        self._last_running = False
+        self._unexpected_starts = 0
+        self._comm_fault_check = False   # the first reading after a connect is not read yet
+        self._comm_fault_grace_until = -math.inf
+        self._comm_faults_cleared = 0
+        self._action_errors = 0
+        self._stopped_loop_errors = 0
+        self.protection = self.plan_host_loss(0.0)
         #: called when a command should be written before the next cycle (set by the
         #: loop that runs this controller: its own, or a bus's)
         self.wake: Callable[[], None] | None = None
         #: run before each status read instead of this drive's own pending command
         #: (a bus writes every drive's new command first)
         self.between_reads: Callable[[], None] | None = None
-        self._state = DriveState(hardware_id=drive.hardware_id)
+        self._state = DriveState(hardware_id=drive.hardware_id, protection=self.protection)
+
+    # --- sizing -------------------------------------------------------------------
+
+    def addressing_interval(self) -> float:
+        """Worst-case time between two requests to this drive when it runs alone on its link."""
+        return max(self.config.cycle_period, self.drive.cycle_seconds()) + \
+            self.drive.action_seconds()
+
+    def plan_host_loss(self, interval: float | None = None) -> HostLossProtection:
+        """Size the drive's own comm-loss protection for ``interval`` (default: alone).
+
+        Raises ParameterError when no valid setting fits (the node refuses to
+        start with the reason); the plan is written at every connect.
+        """
+        if interval is None:
+            interval = self.addressing_interval()
+        self.protection = self.drive.host_loss_plan(self.config.drive_comm_timeout, interval)
+        if self.protection.weaker_than_requested:
+            log.warning('%s: drive-side host-loss protection %s (drive_comm_timeout %g s '
+                        'requested)', self.drive.hardware_id, self.protection.describe(),
+                        self.config.drive_comm_timeout)
+        return self.protection
 
     # --- thread-safe API ------------------------------------------------------
 
@@ -254,20 +331,38 @@ class DriveController:
         """
         code = self.drive.profile.setpoints.get(topic)
         if code is None:
-            raise ParameterError(f'{topic!r} is not a setpoint of this drive')
+            raise ParameterError(f'{quote(topic)} is not a setpoint of this drive')
         parameter = self.drive.profile.parameter(code)
         raw = parameter.to_raw(value)
         with self._lock:
             self._setpoints[code] = raw
 
+    def check_parameter_write(self, key: str, value: float) -> None:
+        """Refuse a parameter write that must not reach the loop (ParameterError says why).
+
+        Unknown names, control-owned registers, commissioning values the driver
+        manages, read-only parameters and bad values are refused here, before
+        anything is queued; whether the drive is running is checked again when
+        the write is done.
+        """
+        profile = self.drive.profile
+        parameter = profile.parameter(key)
+        if self.config.apply_commissioning:
+            for item in profile.commissioning:
+                if item.code == parameter.code:
+                    raise ParameterError(
+                        f'{parameter.code} is set to {item.value:g} at every connect '
+                        f'({item.why}): set apply_commissioning false to manage it yourself')
+        self.drive.check_write(key, value, running=False)
+
     def submit(self, name: str, *args: object) -> Future:
         """Queue a service action; the Future resolves to an ActionResult."""
-        factory = getattr(self, f'_action_{name}', None)
+        factory = self._action_factories.get(name)
         future: Future = Future()
         if factory is None:
-            future.set_result(ActionResult(False, f'unknown action {name!r}'))
+            future.set_result(ActionResult(False, f'unknown action {quote(name)}'))
             return future
-        self._actions.put((lambda: factory(*args), future))
+        self._actions.put((None if args else name, lambda: factory(*args), future))
         return future
 
     def start(self) -> None:
@@ -283,19 +378,24 @@ class DriveController:
         """Stop the loop; the drive is commanded to stop before the link closes."""
         if self._loop is not None:
             self._loop.stop(timeout)
+            self._stopped_loop_errors += self._loop.errors
             self._loop = None
 
     # --- one cycle, in two phases (a bus writes every drive's command first) -----
+
+    @property
+    def connect_due(self) -> bool:
+        return not self._online and self._clock() >= self._next_connect
 
     def step(self) -> None:
         self.command_phase()
         self.poll_phase()
 
-    def command_phase(self) -> None:
-        """Connect when due, then write the command and setpoints."""
+    def command_phase(self, connect_allowed: bool = True) -> None:
+        """Connect when due (and allowed: a bus connects one drive per cycle), then command."""
         self._cycle_ok = False
         self._failed_this_cycle = False
-        if not self._online and self._clock() >= self._next_connect:
+        if connect_allowed and self.connect_due:
             self._connect()
         if not self._online:
             return
@@ -303,15 +403,22 @@ class DriveController:
             self._apply_command()
             self._write_setpoints()
             self._cycle_ok = True
-        except (TransportError, ProtocolException) as exc:
+        except TransportError as exc:
             self._cycle_failed(exc)
+        except ProtocolException as exc:
+            # The drive answered but refused the command: it is there, not offline.
+            self._last_error = str(exc)
+            self._cycle_ok = True
 
     def _apply_command(self) -> None:
         with self._lock:
             velocity = self._velocity
             expired = self._watchdog.expired
             self._command_pending = False
-        self.drive.apply(velocity, self._run_allowed(expired), self._idle_action)
+        run = self._permit(expired, 0.0)[0] is RunState.RUNNING
+        reassert, self._reassert_idle = self._reassert_idle and not run, False
+        self.drive.apply(velocity, run, self._idle_action, reassert=reassert)
+        self._run_written = run
 
     def write_pending_command(self) -> None:
         """Write a new velocity command now, between polls (commands preempt polls)."""
@@ -319,8 +426,10 @@ class DriveController:
             return
         try:
             self._apply_command()
-        except (TransportError, ProtocolException) as exc:
+        except TransportError as exc:
             self._cycle_failed(exc)
+        except ProtocolException as exc:
+            self._last_error = str(exc)
 
     def poll_phase(self) -> None:
         """Read the status, latch faults, advance a service action, publish the state."""
@@ -328,16 +437,49 @@ class DriveController:
             try:
                 self._reading = self.drive.poll(self._cycle, between=self._between_reads)
                 self._cycle += 1
-                if self._reading.fault.active and not self._fault_latched:
-                    self._fault_latched = True
-                    log.warning('%s fault %s %s', self.drive.hardware_id,
-                                self._reading.fault.display, self._reading.fault.name)
+                self._check_fault()
+                self._check_unexpected_motion()
                 self._advance_action()
                 self._failed_cycles = 0
-            except (TransportError, ProtocolException) as exc:
+            except TransportError as exc:
                 self._cycle_failed(exc)
         self._fail_pending_if_offline()
         self._publish_state()
+
+    def _check_fault(self) -> None:
+        fault = self._reading.fault
+        first_after_connect, self._comm_fault_check = self._comm_fault_check, False
+        if not fault.active or self._fault_latched:
+            return
+        spec = self.drive.profile.comm_timeout
+        own_absence = spec is not None and (fault.code, fault.subcode) == \
+            (spec.fault_code, spec.fault_subcode)
+        if own_absence and first_after_connect:
+            # The drive stopped itself because this host was silent (a restart, an
+            # unplugged cable): the stop is written, so the fault is reset once.
+            self._comm_fault_grace_until = self._clock() + self.config.action_timeout
+            self._comm_faults_cleared += 1
+            log.warning('%s: reset %s %s found at connect: the drive stopped itself because '
+                        'the host was silent', self.drive.hardware_id, fault.display, fault.name)
+            self.drive.send_command('fault_reset')
+            return
+        if own_absence and self._clock() < self._comm_fault_grace_until:
+            return       # the reset sent at connect is still taking effect
+        self._fault_latched = True
+        log.warning('%s fault %s %s', self.drive.hardware_id, fault.display, fault.name)
+
+    def _check_unexpected_motion(self) -> None:
+        running = self._reading.flags.get('running', False)
+        if running and not self._run_written:
+            # Whatever was written last, the drive runs although the host has it
+            # idle (a start from elsewhere, or a lost stop): write the idle command again.
+            self._reassert_idle = True
+            if not self._last_running:
+                self._unexpected_starts += 1
+                log.warning('%s reports running although the host has it %s: idle command '
+                            'written again', self.drive.hardware_id,
+                            self._permit(True, 0.0)[0].label)
+        self._last_running = running
 
     def _connect(self) -> None:
         drive = self.drive
@@ -346,29 +488,40 @@ class DriveController:
             drive.open()
             # Start-up never moves the motor: zero setpoint and idle first.
             drive.apply(0.0, run=False, idle_action=self._idle_action)
-            self._configure()
+            self._run_written = False
+            problems = drive.configure(self.protection, self.config.apply_commissioning)
         except VfdError as exc:
             self._last_error = str(exc)
             drive.close()
-            self._next_connect = self._clock() + self.config.reconnect_period
+            self._next_connect = self._clock() + self._reconnect_delay()
             return
+        for problem in problems:
+            # A setting the drive refuses must not keep it offline: report and go on.
+            log.error('%s: not applied at connect: %s', drive.hardware_id, problem)
+        self._settings_refused = tuple(problems)
         self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
         self._online = True
         self._failed_cycles = 0
+        self._last_running = False
+        self._comm_fault_check = True
         if self._was_online:
             self._reconnects += 1
         self._was_online = True
         self._last_error = ''
         log.info('%s online', drive.hardware_id)
 
-    def _configure(self) -> None:
-        for problem in self.drive.configure(self.config.drive_comm_timeout,
-                                            self.config.apply_commissioning):
-            # A setting the drive cannot take (e.g. 0 = "off" where the manual has
-            # no off value) must not keep the drive offline: report and go on.
-            log.error('%s: not applied at connect: %s', self.drive.hardware_id, problem)
+    def _reconnect_delay(self) -> float:
+        """Keep a drive with a comm-loss timeout addressed within it while reconnecting.
+
+        A short glitch then never lets the drive's own timer expire; a drive that
+        is really gone costs its link one failed exchange per attempt.
+        """
+        delay = self.config.reconnect_period
+        if self.protection.active:
+            delay = min(delay, self.protection.timeout / 3)
+        return delay
 
     def _cycle_failed(self, exc: VfdError) -> None:
         if self._failed_this_cycle:
@@ -381,7 +534,7 @@ class DriveController:
             self._online = False
             self._reading = Reading()
             self.drive.close()
-            self._next_connect = self._clock() + self.config.reconnect_period
+            self._next_connect = self._clock() + self._reconnect_delay()
 
     def _between_reads(self) -> None:
         if self.between_reads is not None:
@@ -389,10 +542,27 @@ class DriveController:
         else:
             self.write_pending_command()
 
-    def _run_allowed(self, watchdog_expired: bool) -> bool:
-        return (self._online and self._enabled and not self._stopped
-                and not self._fault_latched and not self._reading.fault.active
-                and not watchdog_expired)
+    def _permit(self, watchdog_expired: bool, watchdog_age: float) -> tuple[RunState, str]:
+        """Decide motion: RUNNING, or the first reason that holds the drive idle (one rule)."""
+        reading = self._reading
+        if not self._online:
+            return RunState.OFFLINE, f'no valid reply from the drive: {self._last_error}'
+        if reading.fault.active or self._fault_latched:
+            fault = reading.fault
+            text = f'fault {fault.display} {fault.name}' if fault.active else 'fault (cleared)'
+            return RunState.FAULT, f'{text}: call ~/reset_fault'
+        if not self._enabled:
+            return RunState.DISABLED, 'disabled: call ~/enable'
+        if self._stopped:
+            return RunState.STOPPED, 'stopped by ~/stop: call ~/enable to resume'
+        if reading.unsafe:
+            return RunState.BLOCKED, reading.unsafe
+        if watchdog_expired:
+            age = 'none received' if math.isinf(watchdog_age) else \
+                f'last {watchdog_age:.2f} s ago'
+            return RunState.WATCHDOG, (f'no velocity command within command_timeout '
+                                       f'{self.config.command_timeout:g} s ({age})')
+        return RunState.RUNNING, ''
 
     def _write_setpoints(self) -> None:
         with self._lock:
@@ -417,14 +587,29 @@ class DriveController:
 
     # --- service actions (generators: one step per cycle) ---------------------
 
-    def _advance_action(self) -> None:
-        if self._current is None:
+    def _take_queued(self) -> None:
+        while True:
             try:
-                factory, future = self._actions.get_nowait()
+                self._backlog.append(self._actions.get_nowait())
             except queue.Empty:
                 return
-            self._current = (factory(), future)
-        steps, future = self._current
+
+    def _advance_action(self) -> None:
+        if self._current is None:
+            self._take_queued()
+            if not self._backlog:
+                return
+            key, factory, future = self._backlog.pop(0)
+            futures = [future]
+            if key is not None:
+                futures += [f for k, _, f in self._backlog if k == key]
+                self._backlog = [item for item in self._backlog if item[0] != key]
+            try:
+                self._current = (factory(), futures)
+            except Exception as exc:  # noqa: BLE001 - a bug must not lose the reply
+                self._action_failed(futures, exc)
+                return
+        steps, futures = self._current
         try:
             next(steps)
             return
@@ -434,24 +619,37 @@ class DriveController:
             result = ActionResult(False, str(exc))
         except TransportError as exc:
             self._current = None
-            future.set_result(ActionResult(False, f'no valid reply from the drive: {exc}'))
+            self._resolve(futures, ActionResult(False, f'no valid reply from the drive: {exc}'))
             raise
+        except Exception as exc:  # noqa: BLE001 - a bug must not lose the reply
+            self._current = None
+            self._action_failed(futures, exc)
+            return
         self._current = None
-        future.set_result(result)
+        self._resolve(futures, result)
+
+    @staticmethod
+    def _resolve(futures: list[Future], result: ActionResult) -> None:
+        for future in futures:
+            future.set_result(result)
+
+    def _action_failed(self, futures: list[Future], exc: Exception) -> None:
+        self._action_errors += 1
+        log.exception('%s: action failed with an internal error: %s', self.drive.hardware_id,
+                      exc)
+        self._resolve(futures, ActionResult(False, f'internal error (a bug, please report): '
+                                                   f'{exc!r}'))
 
     def _fail_pending_if_offline(self) -> None:
         if self._online:
             return
         reason = f'drive offline: {self._last_error or "not connected"}'
         if self._current is not None:
-            self._current[1].set_result(ActionResult(False, reason))
+            self._resolve(self._current[1], ActionResult(False, reason))
             self._current = None
-        while True:
-            try:
-                _, future = self._actions.get_nowait()
-            except queue.Empty:
-                return
-            future.set_result(ActionResult(False, reason))
+        self._take_queued()
+        backlog, self._backlog = self._backlog, []
+        self._resolve([future for _, _, future in backlog], ActionResult(False, reason))
 
     def _wait_for(self, condition: Callable[[], bool],
                   timeout: float) -> Generator[None, None, bool]:
@@ -471,6 +669,8 @@ class DriveController:
             fault = self._reading.fault
             return ActionResult(False, f'drive has fault {fault.display} ({fault.name}): '
                                 'call ~/reset_fault first')
+        if self._reading.unsafe:
+            return ActionResult(False, f'not enabled: {self._reading.unsafe}')
         self._enabled = True
         self._stopped = False
         self._idle_action = 'stop'
@@ -492,6 +692,7 @@ class DriveController:
 
     def _stop_action(self, idle_action: str, what: str) -> Action:
         self._idle_action = idle_action
+        self._reassert_idle = True     # written again now, whatever was sent before
         ok = yield from self._wait_for(lambda: not self._flag('running', False),
                                        self.config.stop_timeout)
         if not ok:
@@ -530,6 +731,7 @@ class DriveController:
         yield  # pragma: no cover - makes this a generator
 
     def _action_set_parameter(self, key: str, value: float, persistent: bool) -> Action:
+        self.check_parameter_write(key, value)
         running = self._flag('running', False)
         written, note = self.drive.set_parameter(key, value, persistent, running)
         parameter = written.parameter
@@ -539,35 +741,24 @@ class DriveController:
 
     # --- snapshot ---------------------------------------------------------------
 
-    def _stop_reason(self, wdg_expired: bool, wdg_age: float) -> tuple[str, str, bool]:
-        reading = self._reading
-        if not self._online:
-            return 'offline', f'no valid reply from the drive: {self._last_error}', False
-        if reading.fault.active or self._fault_latched:
-            fault = reading.fault
-            text = f'fault {fault.display} {fault.name}' if fault.active else 'fault (cleared)'
-            return 'fault', f'{text}: call ~/reset_fault', False
-        if not self._enabled:
-            return 'disabled', 'disabled: call ~/enable', False
-        if self._stopped:
-            return 'stopped', 'stopped by ~/stop: call ~/enable to resume', False
-        if reading.problem:
-            return 'blocked', reading.problem, False
-        if wdg_expired:
-            age = 'none received' if math.isinf(wdg_age) else f'last {wdg_age:.2f} s ago'
-            return ('watchdog', f'no velocity command within command_timeout '
-                    f'{self.config.command_timeout:g} s ({age})', True)
-        return 'running', '', False
+    @property
+    def loop_errors(self) -> int:
+        loop = self._loop
+        return self._action_errors + self._stopped_loop_errors + \
+            (loop.errors if loop is not None else 0)
 
     def _publish_state(self) -> None:
         reading = self._reading
-        stats = self.drive.transport.stats
+        stats = self.drive.stats
         with self._lock:
             wdg_expired = self._watchdog.expired
             wdg_age = self._watchdog.age
-            commanded = self._velocity if self._run_allowed(wdg_expired) else 0.0
             rejected, clamped = self._rejected, self._clamped
-        state, reason, tripped = self._stop_reason(wdg_expired, wdg_age)
+        mode, reason = self._permit(wdg_expired, wdg_age)
+        commanded = self._velocity if mode is RunState.RUNNING else 0.0
+        if mode is RunState.RUNNING and reading.problem:
+            # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).
+            mode, reason = RunState.BLOCKED, reading.problem
         flags = reading.flags
         measured = reading.measured_velocity
         running = flags.get('running', False)
@@ -583,8 +774,8 @@ class DriveController:
             fault=reading.fault.active,
             warning=flags.get('warning', reading.warning_code != 0),
             at_speed=at_speed,
-            watchdog_tripped=tripped,
-            state=state,
+            watchdog_tripped=mode is RunState.WATCHDOG,
+            mode=mode,
             stop_reason=reason,
             status_words=tuple(reading.raw_words.items()),
             commanded_velocity=commanded,
@@ -600,9 +791,15 @@ class DriveController:
             bad_frames=stats.bad_frames,
             exceptions=stats.exceptions,
             reconnects=self._reconnects,
+            late_replies=stats.late_replies,
             rejected_commands=rejected,
             clamped_commands=clamped,
+            unexpected_starts=self._unexpected_starts,
+            comm_faults_cleared=self._comm_faults_cleared,
+            loop_errors=self.loop_errors,
             last_error=self._last_error,
+            protection=self.protection,
+            unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
         )
         with self._lock:
             self._state = snapshot

@@ -140,7 +140,7 @@ def run_profile(commander: Commander, out=sys.stdout) -> bool:
 
 #: (duration s, linear m/s, angular rad/s) driven through /agv/cmd_vel
 AGV_PROFILE: tuple[tuple[float, float, float], ...] = (
-    (2.5, 0.3, 0.0), (2.5, 0.2, 0.8), (2.5, 0.3, 0.0), (1.5, 0.0, 0.0))
+    (2.5, 0.3, 0.0), (2.5, 0.2, 0.8), (2.5, 0.3, 0.0), (3.0, 0.2, -0.4), (1.5, 0.0, 0.0))
 WHEEL_RADIUS = 0.1
 TRACK_WIDTH = 0.5
 
@@ -200,6 +200,9 @@ def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
                 print(f'!! {wheel.name} not {what}', file=out)
                 followed = False
         if step == 2:
+            # The drive stopped itself meanwhile (its comm-loss fault, the host's absence):
+            # the driver writes the stop, resets that fault at connect, and the wheel
+            # follows cmd_vel again in the next step without a service call.
             print('-- right drive plugged back in', file=out)
             _set_silent(commander, [0])
     return followed
@@ -302,10 +305,11 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         if args.agv:
             ok = run_agv_profile(commander)
-            # After the unplug the right drive reports its own comm-loss fault: reset it.
             for wheel in commander.wheels:
-                reply = commander.trigger(wheel, 'reset_fault')
-                print(f'reset_fault {wheel.name}: {reply.message if reply else "no reply"}')
+                status = wheel.status
+                print(f'{wheel.name}: {status.state if status else "no status"}, '
+                      f'{status.reconnects if status else 0} reconnect(s), fault '
+                      f'{(status.fault_code if status else 0) or "none"}')
         else:
             for wheel in commander.wheels:
                 reply = commander.trigger(wheel, 'enable')

@@ -14,13 +14,19 @@ from .errors import BadFrame, ParameterError, ProfileError, ProtocolException
 from .faults import NO_FAULT, FaultInfo, describe_fault
 from .profile import Access, DirectionMode, Parameter, PersistenceKind, Profile, Signal, SpeedUnit
 from .registers import ReadBlock, decode_words, encode_words, plan_reads
+from .rtu_timing import reply_size
 from .scaling import VelocityScaling
-from .transports.base import RegisterTransport, Transport
+from .transports.base import RegisterTransport, Transport, TransportStats
 
 T = TypeVar('T')
 
-#: monitor roles that map onto DriveStatus fields, with the SI unit they carry
-MEASURED_ROLES = ('output_frequency', 'output_current', 'dc_bus_voltage', 'temperature')
+#: s added to twice the worst-case addressing interval when sizing a drive's own
+#: comm-loss timeout: the host's scheduling jitter on a loaded machine
+HOST_LOSS_JITTER = 0.05
+
+#: transactions one service action may add to a cycle (a RAM/EEPROM switch read and
+#: write, the write, its read-back)
+ACTION_TRANSACTIONS = 4
 
 
 @dataclass
@@ -37,6 +43,84 @@ class Reading:
     # Why the drive does not do what it is told, as far as the drive layer knows
     # (e.g. a CiA 402 drive stuck before Operation Enabled); '' when nothing.
     problem: str = ''
+    # Values the drive refuses to give (role -> the register and the drive's own
+    # text): reported unavailable, control goes on.
+    unavailable: dict[str, str] = field(default_factory=dict)
+    # Why motion must not be allowed although the link is up (e.g. the fault or
+    # run state cannot be read); '' when it may run.
+    unsafe: str = ''
+
+
+@dataclass(frozen=True)
+class HostLossProtection:
+    """What stops the drive by itself when the host falls silent, as set at connect."""
+
+    mechanism: str = ''      # e.g. 'C02.04 comm-loss timeout'; '' = none
+    timeout: float = 0.0     # s after the last valid request; 0 = none
+    requested: float = 0.0   # drive_comm_timeout as configured
+    note: str = ''           # why it differs from the request, or why there is none
+
+    @property
+    def active(self) -> bool:
+        return bool(self.mechanism) and self.timeout > 0
+
+    @property
+    def weaker_than_requested(self) -> bool:
+        if not self.active:
+            return self.requested > 0
+        return self.requested > 0 and self.timeout > self.requested + 1e-9
+
+    def describe(self) -> str:
+        if not self.active:
+            return f'none: {self.note}' if self.note else 'none'
+        text = f'{self.mechanism}: {self.timeout:g} s'
+        return f'{text} ({self.note})' if self.note else text
+
+
+def size_comm_timeout(parameter: Parameter, requested: float,
+                      minimum: float) -> tuple[float, str]:
+    """Choose the value of a drive's comm-loss timeout parameter; (seconds, note).
+
+    The request is rounded to the parameter's resolution, raised to ``minimum``
+    (what the bus needs so that a healthy drive never trips) and kept within the
+    parameter's range; the note says why the result differs from the request.
+    ``requested`` 0 asks for no timeout. Raises ParameterError when the bus needs
+    more than the parameter allows.
+    """
+    step = abs(parameter.scale)
+    low_raw, high_raw = parameter.type.bounds
+    highest = parameter.maximum if parameter.maximum is not None else high_raw * step
+    lowest = max(parameter.minimum if parameter.minimum is not None else 0.0, step)
+    code = parameter.code
+    if requested == 0:
+        try:
+            parameter.to_raw(0.0)
+            return 0.0, 'off, as drive_comm_timeout 0 asks'
+        except ParameterError:
+            return highest, f'{code} has no off value: its longest, {highest:g} s'
+    if minimum > highest + 1e-9:
+        raise ParameterError(
+            f'{code}: this drive is addressed at worst every {minimum / 2:.3g} s on its bus, '
+            f'so its comm-loss timeout must be at least {minimum:.3g} s, but {code} allows '
+            f'at most {highest:g} s: use a higher baud rate, fewer drives on the line or '
+            'fewer polled values')
+    value = round(requested / step) * step
+    notes = []
+    if abs(value - requested) > 1e-9:
+        notes.append(f'{requested:g} s is not a multiple of {step:g} s')
+    if value < minimum - 1e-9:
+        value = math.ceil(minimum / step - 1e-9) * step
+        notes.append(f'raised from {requested:g} s: the bus addresses this drive at worst '
+                     f'every {(minimum - HOST_LOSS_JITTER) / 2 * 1000:.0f} ms, and less than '
+                     f'{minimum:.3g} s would fault a healthy drive')
+    if value < lowest - 1e-9:
+        value = lowest
+        notes.append(f'{code} allows no less than {lowest:g} s')
+    if value > highest + 1e-9:
+        value = highest
+        notes.append(f'{code} allows at most {highest:g} s')
+    value = round(value / step) * step
+    return value, '; '.join(notes)
 
 
 @dataclass(frozen=True)
@@ -65,16 +149,37 @@ class Drive(Protocol):
     @property
     def hardware_id(self) -> str: ...
 
+    @property
+    def stats(self) -> TransportStats:
+        """This drive's own counters (a shared link also counts the others')."""
+
+    def cycle_seconds(self) -> float:
+        """Time one full command + status cycle of this drive occupies its link."""
+
+    def connect_seconds(self) -> float:
+        """Time this drive's connect sequence occupies its link (worst case)."""
+
+    def action_seconds(self) -> float:
+        """Time one service action may add to a cycle."""
+
+    def host_loss_plan(self, requested: float, interval: float) -> HostLossProtection:
+        """Plan the drive-side protection against host death (no I/O; ParameterError)."""
+
+    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
+        """Validate a parameter write without touching the drive (ParameterError)."""
+
     def open(self) -> None: ...
 
     def close(self) -> None: ...
 
     def forget_state(self) -> None: ...
 
-    def configure(self, drive_comm_timeout: float, apply_commissioning: bool) -> list[str]:
+    def configure(self, protection: HostLossProtection,
+                  apply_commissioning: bool) -> list[str]:
         """Connect-time writes; returns the problems that did not stop the connect."""
 
-    def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None: ...
+    def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
+              reassert: bool = False) -> None: ...
 
     def send_command(self, action: str) -> None: ...
 
@@ -107,27 +212,51 @@ class ModbusDrive:
         self._signals: list[tuple[Signal, Parameter]] = [
             (signal, profile.parameter(signal.code)) for signal in profile.monitor]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
-        wanted = [(p.address, p.register_count) for _, p in self._signals]
-        wanted += [(p.address, p.register_count) for p in self._status_words]
-        readable = (lambda _address: True) if profile.modbus.gaps_readable else \
-            (lambda address: profile.parameter_at(address) is not None)
-        self.blocks: list[ReadBlock] = plan_reads(
-            wanted, profile.modbus.max_read_registers, readable)
-        self._block_every = {
-            block: min(s.every for s, p in self._signals if block.covers(p.address))
-            if any(block.covers(p.address) for _, p in self._signals) else 1
-            for block in self.blocks}
+        self._refused: dict[int, str] = {}      # register -> why the drive refuses it
+        self._plan_reads()
         self._unsigned_roles = {signal.role: parameter.type.bounds[0] == 0 and not signal.bits
                                 for signal, parameter in self._signals}
+        # Roles the run and fault state are decoded from: without them the drive
+        # cannot be run safely, whatever else it reports.
+        self._vital_roles = {'fault_code'} | {
+            rule.signal for name, rule in profile.flags.items() if name in ('running', 'fault')}
         self._words: dict[int, int] = {}
         self.asserted_command: str | None = None
         self.last_setpoint_raw = 0
+
+    def _plan_reads(self, split: ReadBlock | None = None) -> None:
+        """Plan the status reads around refused registers; ``split`` is read span by span."""
+        profile = self.profile
+        spans = [(p.address, p.register_count) for _, p in self._signals]
+        spans += [(p.address, p.register_count) for p in self._status_words]
+        spans = [(a, n) for a, n in dict.fromkeys(spans)
+                 if not any(a + i in self._refused for i in range(n))]
+        def readable(address: int) -> bool:
+            # A block never reaches over a refused register, nor (on most drives) over
+            # an undocumented one.
+            return address not in self._refused and (
+                profile.modbus.gaps_readable or profile.parameter_at(address) is not None)
+        limit = profile.modbus.max_read_registers
+        if split is None:
+            self.blocks: list[ReadBlock] = plan_reads(spans, limit, readable)
+        else:
+            alone = [ReadBlock(a, n) for a, n in spans if split.covers(a, n)]
+            self.blocks = sorted([block for block in self.blocks if block != split] + alone,
+                                 key=lambda block: block.start)
+        self._block_every = {
+            block: min((s.every for s, p in self._signals if block.covers(p.address)),
+                       default=1)
+            for block in self.blocks}
 
     # --- link ---------------------------------------------------------------
 
     @property
     def hardware_id(self) -> str:
         return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
+
+    @property
+    def stats(self) -> TransportStats:
+        return self.transport.stats_for(self.unit_id)
 
     def open(self) -> None:
         self.transport.open()
@@ -142,23 +271,75 @@ class ModbusDrive:
         """After a link loss nothing read or written before is trusted."""
         self._words.clear()
         self.asserted_command = None
+        if self._refused:
+            self._refused.clear()      # it may be another drive (or firmware) now
+            self._plan_reads()
 
-    def configure(self, drive_comm_timeout: float, apply_commissioning: bool) -> list[str]:
-        """Write the drive's comm timeout and bus-control settings, only where they differ."""
+    # --- timing (for sizing the drive's own comm-loss timeout) -----------------
+
+    def _write_requests(self, parameter: Parameter) -> tuple[int, int]:
+        if parameter.register_count == 1 and 6 in self.profile.modbus.function_codes:
+            return 8, reply_size(6)
+        return 9 + 2 * parameter.register_count, reply_size(16)
+
+    def cycle_seconds(self) -> float:
+        """Wire time of one full cycle: the setpoint write and every status read."""
+        exchange = self.transport.exchange_seconds
+        total = exchange(*self._write_requests(self._setpoint))
+        for block in self.blocks:
+            total += exchange(8, reply_size(3, block.count))
+        return total
+
+    def connect_seconds(self) -> float:
+        """Wire time of a connect: zero setpoint, idle command, settings read and written."""
+        exchange = self.transport.exchange_seconds
+        total = exchange(*self._write_requests(self._setpoint))
+        total += 2 * exchange(*self._write_requests(self._command))
+        settings = len(self.profile.commissioning) + (self.profile.comm_timeout is not None)
+        total += settings * (exchange(8, reply_size(3, 2)) + exchange(8, reply_size(6)))
+        return total + self.cycle_seconds()
+
+    def action_seconds(self) -> float:
+        """Wire time one service action may add to a cycle."""
+        return ACTION_TRANSACTIONS * self.transport.exchange_seconds(8, reply_size(3, 2))
+
+    def host_loss_plan(self, requested: float, interval: float) -> HostLossProtection:
+        """Plan the comm-loss timeout to write: ``requested``, sized for the bus (README)."""
+        spec = self.profile.comm_timeout
+        if spec is None:
+            return HostLossProtection(
+                requested=requested,
+                note=f'{self.profile.name} has no comm-loss timeout on this bus: only the '
+                     'host watchdog stops the motor, not a dead host')
+        parameter = self.profile.parameter(spec.parameter)
+        minimum = 2 * interval + HOST_LOSS_JITTER
+        value, note = size_comm_timeout(parameter, requested, minimum)
+        mechanism = f'{parameter.code} comm-loss timeout' if value > 0 else ''
+        return HostLossProtection(mechanism, value, requested, note)
+
+    # --- connect ----------------------------------------------------------------
+
+    def configure(self, protection: HostLossProtection,
+                  apply_commissioning: bool) -> list[str]:
+        """Write the drive's comm timeout and bus-control settings, only where they differ.
+
+        A setting the drive refuses (an exception reply) is reported, not fatal:
+        the drive stays online. A failed link still raises.
+        """
         wanted: list[tuple[str, float]] = []
-        if self.profile.comm_timeout is not None and drive_comm_timeout >= 0:
-            wanted.append((self.profile.comm_timeout.parameter, drive_comm_timeout))
+        if self.profile.comm_timeout is not None:
+            wanted.append((self.profile.comm_timeout.parameter, protection.timeout))
         if apply_commissioning:
             wanted += [(item.code, item.value) for item in self.profile.commissioning]
         problems = []
         for code, value in wanted:
+            parameter = self.profile.parameter(code)
             try:
-                parameter, raw = self.check_write(code, value, running=False)
-            except ParameterError as exc:
-                problems.append(str(exc))
-                continue
-            if self.read_value(parameter).raw != raw:
-                self.write_raw(parameter, raw)
+                raw = parameter.to_raw(value)
+                if self.read_value(parameter).raw != raw:
+                    self.write_raw(parameter, raw)
+            except (ParameterError, ProtocolException) as exc:
+                problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
         return problems
 
     # --- register access ------------------------------------------------------
@@ -255,18 +436,20 @@ class ModbusDrive:
             address |= persistence.flag   # RAM only: cyclic values must not wear the EEPROM
         self.write_raw(parameter, raw, address)
 
-    def apply(self, velocity: float, run: bool, idle_action: str = 'stop') -> None:
+    def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
+              reassert: bool = False) -> None:
         """One control cycle: write the setpoint, then (re)assert run or idle.
 
         A run command is written only on a change (with the rising edge the
-        drive needs); the setpoint is written every cycle, which also feeds
-        the drive's own comm-loss timer.
+        drive needs) or when ``reassert`` says the drive does not do what was
+        last written; the setpoint is written every cycle, which also feeds the
+        drive's own comm-loss timer.
         """
         raw, run_action = self._native_setpoint(velocity if run else 0.0)
         self.write_raw(self._setpoint, raw)
         self.last_setpoint_raw = raw
         wanted = run_action if run else idle_action
-        if wanted == self.asserted_command:
+        if wanted == self.asserted_command and not reassert:
             return
         if run and self.asserted_command not in ('run', 'run_reverse') and \
                 self.profile.control.run_edge_from is not None:
@@ -281,20 +464,34 @@ class ModbusDrive:
         ``between()`` runs before each read, so a command that arrived meanwhile
         goes on the wire ahead of the remaining status reads.
         """
-        for block in self.blocks:
+        for block in list(self.blocks):
             if between is not None:
                 between()
             if cycle % self._block_every[block] == 0 or block.start not in self._words:
-                for offset, word in enumerate(self._read(block.start, block.count)):
+                try:
+                    words = self._read(block.start, block.count)
+                except ProtocolException as exc:
+                    self._refuse(block, exc)
+                    continue
+                for offset, word in enumerate(words):
                     self._words[block.start + offset] = word
         reading = Reading()
         for signal, parameter in self._signals:
-            words = [self._words.get(parameter.address + i) for i in
-                     range(parameter.register_count)]
+            span = range(parameter.address, parameter.address + parameter.register_count)
+            refused = next((self._refused[a] for a in span if a in self._refused), None)
+            if refused is not None:
+                reading.unavailable[signal.role] = f'{parameter.code}: {refused}'
+                continue
+            words = [self._words.get(address) for address in span]
             if None in words:
                 continue
             raw = signal.extract(decode_words(parameter, words))
             reading.values[signal.role] = raw if signal.bits else parameter.from_raw(raw)
+        vital = sorted(self._vital_roles & set(reading.unavailable))
+        if vital:
+            reading.unsafe = ('the drive refuses ' + '; '.join(
+                reading.unavailable[role] for role in vital) + ': its run or fault state '
+                'is unknown, so it is not run')
         for parameter in self._status_words:
             if parameter.address in self._words:
                 reading.raw_words[parameter.code] = self._words[parameter.address]
@@ -309,6 +506,20 @@ class ModbusDrive:
         reading.measured_velocity = self._measured_velocity(
             values, reading.flags.get('reverse', False))
         return reading
+
+    def _refuse(self, block: ReadBlock, exc: ProtocolException) -> None:
+        """Handle a refused status read: read its values one by one, drop the refused."""
+        spans = [(p.address, p.register_count) for _, p in self._signals
+                 if block.covers(p.address, p.register_count)]
+        spans += [(p.address, p.register_count) for p in self._status_words
+                  if block.covers(p.address, p.register_count)]
+        if len(set(spans)) > 1:
+            self._plan_reads(split=block)        # next cycle: each value on its own
+            return
+        for address in range(block.start, block.start + block.count):
+            self._refused[address] = exc.text
+            self._words.pop(address, None)
+        self._plan_reads()
 
     def _measured_velocity(self, values: Mapping[str, float], reverse: bool) -> float:
         for role, unit in (('motor_speed', self.profile.velocity.feedback_unit),
@@ -329,6 +540,10 @@ class ModbusDrive:
     def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
         """Validate a write without touching the drive; ParameterError says why not."""
         parameter = self.profile.parameter(key)
+        owner = self.profile.control_owned.get(parameter.code)
+        if owner is not None:
+            raise ParameterError(f'{parameter.code} ({parameter.description}) is not written '
+                                 f'through parameters: {owner}')
         if parameter.access is Access.READ_ONLY:
             raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
         if parameter.access is Access.WRITE_WHEN_STOPPED and running:

@@ -4,6 +4,17 @@ Every error the driver raises on purpose is a ``VfdError``; callers that must
 never crash (ROS callbacks, the drive loop) catch ``VfdError`` and report it.
 """
 
+#: characters of user input shown in an error message (a parameter name may be 10 kB)
+QUOTE_LIMIT = 64
+
+
+def quote(value: object) -> str:
+    """Return user input fit for an error message, a reply or a log line: repr'd, capped."""
+    shown = repr(value)
+    if len(shown) <= QUOTE_LIMIT:
+        return shown
+    return f'{shown[:QUOTE_LIMIT]}... ({len(shown)} characters)'
+
 
 class VfdError(Exception):
     """Base of all errors raised by vfd_ros2."""

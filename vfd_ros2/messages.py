@@ -28,8 +28,12 @@ def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) 
     msg.warning = state.warning
     msg.at_speed = state.at_speed
     msg.watchdog_tripped = state.watchdog_tripped
+    msg.run_state = int(state.mode)
     msg.state = state.state
     msg.stop_reason = state.stop_reason
+    msg.host_loss_timeout = float(state.protection.timeout) if state.protection.active else 0.0
+    msg.host_loss_protection = state.protection.describe()
+    msg.unavailable = list(state.unavailable)
     msg.status_word_names = [name for name, _ in state.status_words]
     msg.status_words_raw = [value & 0xFFFF for _, value in state.status_words]
     msg.commanded_velocity = float(state.commanded_velocity)
@@ -45,7 +49,8 @@ def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) 
     msg.warning_code = state.warning_code & 0xFFFF
     msg.warning_subcode = state.warning_subcode & 0xFFFF
     for counter in ('transactions', 'comm_errors', 'timeouts', 'bad_frames', 'exceptions',
-                    'reconnects', 'rejected_commands', 'clamped_commands'):
+                    'reconnects', 'late_replies', 'rejected_commands', 'clamped_commands',
+                    'unexpected_starts'):
         setattr(msg, counter, min(getattr(state, counter), 0xFFFFFFFF))
     return msg
 
@@ -90,6 +95,19 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
     elif state.warning:
         status.level = DiagnosticStatus.WARN
         status.message = f'warning {state.warning_code}.{state.warning_subcode}'
+    elif state.loop_errors:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'{state.loop_errors} internal errors in the drive loop (a bug)'
+    elif not state.protection.active:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'no drive-side host-loss protection: {state.protection.note}'
+    elif state.protection.weaker_than_requested:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'host-loss protection weaker than requested: ' \
+            f'{state.protection.describe()}'
+    elif state.unavailable:
+        status.level = DiagnosticStatus.WARN
+        status.message = f'the drive refuses: {"; ".join(state.unavailable)}'
     else:
         status.level = DiagnosticStatus.OK
         status.message = state.state if not state.stop_reason else \
@@ -116,8 +134,15 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         ('bad frames', state.bad_frames),
         ('exceptions', state.exceptions),
         ('reconnects', state.reconnects),
+        ('late replies', state.late_replies),
         ('rejected commands', state.rejected_commands),
         ('clamped commands', state.clamped_commands),
+        ('unexpected starts', state.unexpected_starts),
+        ('comm-loss faults reset at connect', state.comm_faults_cleared),
+        ('loop errors', state.loop_errors),
+        ('host-loss protection', state.protection.describe()),
+        ('drive_comm_timeout requested (s)', f'{state.protection.requested:g}'),
+        ('unavailable', '; '.join(state.unavailable)),
         ('last error', state.last_error),
     ]
     status.values = [KeyValue(key=key, value=str(value)) for key, value in pairs]

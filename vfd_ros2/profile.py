@@ -12,6 +12,7 @@ The schema is documented in ``vfd_ros2/profiles/README.md``.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ from typing import Any, Mapping
 
 import yaml
 
-from .errors import ParameterError, ProfileError
+from .errors import ParameterError, ProfileError, quote
 
 PROFILE_DIR = Path(__file__).resolve().parent / 'profiles'
 
@@ -118,12 +119,6 @@ class Parameter:
         """
         if not math.isfinite(value):
             raise ParameterError(f'{self.code}: value {value} is not a finite number')
-        raw_float = value / self.scale
-        raw = round(raw_float)
-        if abs(raw_float - raw) > 1e-6 * max(1.0, abs(raw_float)):
-            raise ParameterError(
-                f'{self.code}: {value} is not a multiple of the resolution {self.scale:g}'
-                f'{self.unit}')
         if self.minimum is not None and value < self.minimum - abs(self.scale) * 1e-6:
             raise ParameterError(
                 f'{self.code}: {value:g}{self.unit} is below the minimum {self.minimum:g}'
@@ -132,10 +127,21 @@ class Parameter:
             raise ParameterError(
                 f'{self.code}: {value:g}{self.unit} is above the maximum {self.maximum:g}'
                 f'{self.unit}')
+        raw_float = value / self.scale
+        low, high = self.type.bounds
+        if not math.isfinite(raw_float) or not low - 1 <= raw_float <= high + 1:
+            # Checked before rounding: 1e308 / 0.1 is inf, which round() cannot take.
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is outside what the register can hold '
+                f'({low * self.scale:g}..{high * self.scale:g}{self.unit})')
+        raw = round(raw_float)
+        if abs(raw_float - raw) > 1e-6 * max(1.0, abs(raw_float)):
+            raise ParameterError(
+                f'{self.code}: {value} is not a multiple of the resolution {self.scale:g}'
+                f'{self.unit}')
         if self.options and raw not in self.options:
             allowed = ', '.join(f'{k} ({v})' for k, v in sorted(self.options.items()))
             raise ParameterError(f'{self.code}: {raw} is not one of the options: {allowed}')
-        low, high = self.type.bounds
         if not low <= raw <= high:
             raise ParameterError(
                 f'{self.code}: raw value {raw} does not fit {self.type.value}')
@@ -441,6 +447,10 @@ class Profile:
     notes: tuple[str, ...] = ()
     source_file: str = ''
     canopen: CanopenSpec | None = None
+    # Registers the control loop writes (command word, setpoints, the comm-loss
+    # timeout it manages, CiA 402 objects): code -> what to use instead. The
+    # parameter services refuse them, so nothing moves the motor around the loop.
+    control_owned: Mapping[str, str] = field(default_factory=dict)
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
     _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
     _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)
@@ -456,7 +466,7 @@ class Profile:
         if stripped in self._by_name:
             return self.parameters[self._by_name[stripped]]
         raise ParameterError(
-            f'unknown parameter {key!r} for profile {self.name} '
+            f'unknown parameter {quote(key)} for profile {self.name} '
             '(use a function code such as those in the manual, or a readable name)')
 
     def parameter_at(self, address: int) -> Parameter | None:
@@ -838,6 +848,7 @@ def _load_profile_file(path: Path) -> Profile:
 
     canopen = _canopen(r.get('canopen'), 'canopen', parameters) \
         if r.get('canopen', None) is not None else None
+    extra_owned = {str(k): str(v) for k, v in (r.get('control_owned', {}) or {}).items()}
 
     profile = Profile(
         name=str(r.get('name')),
@@ -865,7 +876,59 @@ def _load_profile_file(path: Path) -> Profile:
     )
     r.done()
     _check_references(profile)
+    for code in extra_owned:
+        if code not in parameters:
+            raise ProfileError(f'{path.name}: control_owned names {code!r}, not in the '
+                               'parameter table')
+    profile = dataclasses.replace(profile, control_owned={
+        **_control_owned(profile), **extra_owned})
+    _check_defaults(profile)
     return profile
+
+
+def _control_owned(profile: Profile) -> dict[str, str]:
+    """Find the registers the control loop writes, from the profile's own references."""
+    owned = {
+        profile.control.command: "the command word is the control loop's: use ~/enable, "
+                                 '~/disable, ~/stop and ~/reset_fault',
+        profile.velocity.setpoint: "the speed setpoint is the control loop's: publish on "
+                                   '~/velocity_command',
+    }
+    for topic, code in profile.setpoints.items():
+        owned[code] = f'this setpoint is written from the ~/{topic} topic'
+    if profile.comm_timeout is not None:
+        owned[profile.comm_timeout.parameter] = (
+            'the comm-loss timeout is written at connect from the drive_comm_timeout '
+            'parameter, sized for the bus')
+    if profile.canopen is not None:
+        # CiA 402 objects and their manufacturer twins, in every object set the
+        # profile offers (another set may alias the same object).
+        indices: dict[tuple[int, int], str] = {}
+        for objects in profile.canopen.object_sets.values():
+            for obj, what in ((objects.controlword, 'the controlword'),
+                              (objects.target_velocity, 'the target velocity'),
+                              (objects.mode_of_operation, 'the mode of operation')):
+                if obj is not None:
+                    indices[(obj.index, obj.subindex)] = what
+        for parameter in profile.parameters.values():
+            what = indices.get((parameter.index, parameter.subindex)) \
+                if parameter.index is not None else None
+            if what is not None and parameter.code not in owned:
+                owned[parameter.code] = (f"{what} is the control loop's (written every "
+                                         'cycle or at connect): use the topics and services')
+    return owned
+
+
+def _check_defaults(profile: Profile) -> None:
+    """Every factory default must be a value the driver would accept for its parameter."""
+    for parameter in profile.parameters.values():
+        if parameter.default is None:
+            continue
+        try:
+            parameter.to_raw(parameter.default)
+        except ParameterError as exc:
+            raise ProfileError(f'{profile.source_file}: the factory default of '
+                               f'{parameter.code} is not a valid value: {exc}') from exc
 
 
 def _check_references(profile: Profile) -> None:

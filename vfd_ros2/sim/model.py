@@ -353,6 +353,7 @@ class SimulatedDrive:
         self._set_role('warning_code', self.warning_code)
         wanted = {
             'ready': not self.fault_code,
+            'run_requested': self.run_requested and not self.fault_code,
             'running': self.output_active,
             'fault': bool(self.fault_code),
             'warning': bool(self.warning_code),

@@ -88,6 +88,18 @@ class Transport(abc.ABC):
         """Time ``byte_count`` bytes in ``frames`` frames occupy the medium (None: unknown)."""
         return None
 
+    def exchange_seconds(self, request_bytes: int, reply_bytes: int) -> float:
+        """Worst-case time one healthy request/reply exchange occupies the link.
+
+        Used to size the drive's own comm-loss timeout for the bus; links without
+        a wire model (TCP) assume a LAN round trip plus the drive's processing.
+        """
+        return 0.005
+
+    def failed_exchange_seconds(self) -> float:
+        """Time one exchange with a silent drive occupies the link (its timeout)."""
+        return float(getattr(self, 'timeout', 0.1))
+
     @abc.abstractmethod
     def open(self) -> None:
         """Open the link (idempotent). Raises TransportError if it cannot."""

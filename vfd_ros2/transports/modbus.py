@@ -25,7 +25,7 @@ from pymodbus.pdu.register_message import (
 
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
 from ..profile import Profile
-from ..rtu_timing import character_time, frame_gap, reply_size
+from ..rtu_timing import character_time, frame_gap, reply_size, transaction_time
 from .base import RegisterTransport, TransportParameter
 from .rtu_link import LinkBadFrame, LinkLost, LinkTimeout, RtuLink
 
@@ -177,6 +177,11 @@ class _PymodbusTransport(_ModbusTransport):
             self.stats.bytes_received += len(self._received)
 
 
+#: s per exchange for the slave's and the host's turnaround (a slave's response time
+#: is not part of the wire time; drives answer within ~1 ms, the host adds ~0.3 ms)
+TURNAROUND = 0.0015
+
+
 class _RtuSettings:
     """Settings, factory defaults and wire arithmetic shared by both RTU transports."""
 
@@ -221,6 +226,17 @@ class _RtuSettings:
         """Characters on the wire plus the t3.5 silence each frame needs (rtu_timing)."""
         char = character_time(self.baudrate, self.parity, self.stopbits, self.bytesize)
         return byte_count * char + frames * frame_gap(self.baudrate, char)
+
+    def exchange_seconds(self, request_bytes: int, reply_bytes: int) -> float:
+        """Both frames, both t3.5 silences, and the turnarounds of slave and host."""
+        char = character_time(self.baudrate, self.parity, self.stopbits, self.bytesize)
+        return transaction_time(request_bytes, reply_bytes, char,
+                                frame_gap(self.baudrate, char)) + TURNAROUND
+
+    def failed_exchange_seconds(self) -> float:
+        """Return the request, the timeout, and the late-reply guard before the next ask."""
+        guard = getattr(self, 'late_reply_guard', 0.0)
+        return self.exchange_seconds(8, 0) + self.timeout + guard
 
 
 class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
