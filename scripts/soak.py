@@ -6,10 +6,14 @@ Everything runs in this process over real Modbus RTU frames on a pty: a bus of
 DriveControllers (what bus_node runs) against the simulated line. A commander
 changes every drive's velocity every few hundred milliseconds; a chaos monkey
 injects drive faults (reset afterwards by an operator), pulls drives off the
-line for a while, and corrupts replies in bursts. The report at the end counts
-commands sent and acknowledged by the drives, faults injected, seen and reset,
-reconnects, and every loss it cannot explain by an injected event (the exit
-code is 1 if there is one).
+line for a while, and in bursts corrupts replies, answers late (just after the
+master's timeout) and echoes writes with another value; drive 1 refuses its
+temperature register throughout. The report at the end counts commands sent
+and acknowledged by the drives, faults injected, seen and reset, reconnects,
+and every loss it cannot explain by an injected event: a drive offline without
+a cause, a fault nobody injected (a phantom: a late reply read as a status), a
+comm-loss fault the driver's own timing caused, a refused value that took the
+drive offline (the exit code is 1 if there is one).
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from pathlib import Path
 from vfd_ros2.bus import Bus, parse_bus_config
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
-from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 
 
 @dataclass
@@ -41,6 +45,11 @@ class Report:
     unplugs: int = 0
     reconnects: int = 0
     corruption_bursts: int = 0
+    late_reply_bursts: int = 0
+    wrong_echo_bursts: int = 0
+    late_replies_sent: int = 0          # by the simulated line
+    late_replies_discarded: int = 0     # by the driver
+    wrong_echoes_sent: int = 0
     bad_frames: int = 0
     timeouts: int = 0
     unexplained: list[str] = field(default_factory=list)
@@ -52,7 +61,9 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
     workdir = Path(tempfile.mkdtemp(prefix='vfd_soak_'))
     sims = [SimulatedDrive(profile, unit, {'acceleration_time': 0.2, 'deceleration_time': 0.2})
             for unit in range(1, drives + 1)]
-    line = SimulatedRtuLine(sims, workdir / 'rs485', seed=seed).start()
+    sims[0].refuse(['A00.15'])             # a firmware without the heatsink temperature
+    line = SimulatedRtuLine(sims, workdir / 'rs485', seed=seed,
+                            faults=LineFaults(late_delay=(0.055, 0.09))).start()
     config = parse_bus_config({
         'bus': {'transport.type': 'modbus_rtu', 'transport.port': str(workdir / 'rs485'),
                 'transport.timeout': 0.05, 'control_rate': 50.0},
@@ -62,6 +73,8 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
                    for unit in range(1, drives + 1)}})
     bus = Bus(config)
     controllers = list(bus.controllers.values())
+    comm_loss = profile.comm_timeout
+    unplugged_since: dict[int, float] = {}   # drive index -> when the current unplug began
     report = Report(drives=drives)
     unplugged: dict[int, float] = {}       # drive index -> plug back at
     pending_faults: dict[int, int] = {}    # drive index -> injected code
@@ -93,13 +106,15 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
                 next_chaos = now + rng.uniform(1.0, 3.0)
             for index, back_at in list(unplugged.items()):
                 explained_until[index] = now + grace
+                unplugged_since.setdefault(index, now)
                 if now >= back_at:
                     sims[index].silent = False
                     del unplugged[index]
-            if line.corrupt_rate:
+            faults = line.faults
+            if faults.corrupt_rate or faults.late_rate or faults.wrong_echo_rate:
                 explained_until = [now + grace] * drives
                 if rng.random() < 0.02:
-                    line.corrupt_rate = 0.0
+                    faults.corrupt_rate = faults.late_rate = faults.wrong_echo_rate = 0.0
             for index, controller in enumerate(controllers):
                 state = controller.state
                 if state.online:
@@ -109,22 +124,44 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
                     report.unexplained.append(f'drive {index + 1} offline at '
                                               f'{now - start:.1f} s: {state.last_error}')
                 if state.fault:
-                    code = state.active_fault.code
-                    if index in pending_faults and code == pending_faults[index]:
+                    fault = state.active_fault
+                    if index in pending_faults and fault.code == pending_faults[index]:
                         report.faults_seen += 1
                         sims[index].inject_fault(0)          # the operator fixes the cause
                         del pending_faults[index]
+                    elif (fault.code, fault.subcode) == (comm_loss.fault_code,
+                                                         comm_loss.fault_subcode):
+                        # Only an unplug longer than the drive's own timeout explains it.
+                        since = unplugged_since.get(index)
+                        if since is None or now - since < controller.protection.timeout:
+                            report.unexplained.append(
+                                f'drive {index + 1}: comm-loss fault {fault.display} at '
+                                f'{now - start:.1f} s without a long enough unplug')
+                    elif sims[index].fault_code != fault.code:
+                        report.unexplained.append(
+                            f'drive {index + 1}: phantom fault {fault.display} at '
+                            f'{now - start:.1f} s (the drive has {sims[index].fault_code})')
                     if controller.submit('reset_fault').result(timeout=5).success:
                         report.faults_reset += 1
+                if index not in unplugged and state.online:
+                    unplugged_since.pop(index, None)
             time.sleep(0.05)
     finally:
         bus.shutdown()
         line.stop()
+    report.late_replies_sent = line.stats.late_replies
+    report.wrong_echoes_sent = line.stats.wrong_echoes
     for index, controller in enumerate(controllers):
         state = controller.state
         report.reconnects += state.reconnects
         report.bad_frames += state.bad_frames
         report.timeouts += state.timeouts
+        report.late_replies_discarded += state.late_replies
+        if controller.loop_errors:
+            report.unexplained.append(f'drive {index + 1}: {controller.loop_errors} '
+                                      'exceptions inside the drive loop')
+    if not any('A00.15' in item for item in controllers[0].state.unavailable):
+        report.unexplained.append('drive 1: its refused temperature was not reported')
         if index in pending_faults:
             report.unexplained.append(f'drive {index + 1}: injected fault '
                                       f'{pending_faults[index]} never reported')
@@ -134,7 +171,7 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
 
 def _chaos(rng, now, sims, line, unplugged, pending_faults, report) -> None:
     index = rng.randrange(len(sims))
-    event = rng.choice(('fault', 'unplug', 'garbage'))
+    event = rng.choice(('fault', 'unplug', 'garbage', 'late', 'echo'))
     if event == 'fault' and index not in pending_faults and index not in unplugged:
         code = rng.choice(sorted(sims[index].profile.faults.table))
         sims[index].inject_fault(code, 1, latched=True)
@@ -145,8 +182,14 @@ def _chaos(rng, now, sims, line, unplugged, pending_faults, report) -> None:
         unplugged[index] = now + rng.uniform(0.3, 2.0)
         report.unplugs += 1
     elif event == 'garbage':
-        line.corrupt_rate = rng.uniform(0.02, 0.1)
+        line.faults.corrupt_rate = rng.uniform(0.02, 0.1)
         report.corruption_bursts += 1
+    elif event == 'late':
+        line.faults.late_rate = rng.uniform(0.05, 0.15)
+        report.late_reply_bursts += 1
+    elif event == 'echo':
+        line.faults.wrong_echo_rate = rng.uniform(0.02, 0.1)
+        report.wrong_echo_bursts += 1
 
 
 def main(argv: list[str] | None = None) -> int:

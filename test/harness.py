@@ -27,7 +27,7 @@ from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.node import DriveNode
 from vfd_ros2.profile import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
-from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 from vfd_ros2.sim.tcp_server import SimulatedTcpServer
 
 
@@ -116,19 +116,22 @@ class DriveHarness(DriveClient):
 
     def __init__(self, context: Context, port: str, profile: str = 'boneng_am',
                  sim_initial: dict[str, float] | None = None,
-                 node_parameters: dict[str, Any] | None = None) -> None:
+                 node_parameters: dict[str, Any] | None = None,
+                 line_faults: LineFaults | None = None,
+                 refused: tuple[str, ...] = ()) -> None:
         self.profile = load_profile(profile)
         velocity = self.profile.velocity
         initial = {code: 0.5 for code in (velocity.acceleration_time, velocity.deceleration_time)
                    if code}
         initial.update(sim_initial or {})
         self.sim = SimulatedDrive(self.profile, 1, initial)
+        self.sim.refuse(list(refused))
         self.transport = self.profile.transports[0]
         if self.transport == 'modbus_tcp':
             self.line = SimulatedTcpServer([self.sim]).start()
             link = {'transport.host': '127.0.0.1', 'transport.port': self.line.port}
         else:
-            self.line = SimulatedRtuLine([self.sim], port).start()
+            self.line = SimulatedRtuLine([self.sim], port, faults=line_faults).start()
             link = {'transport.port': port}
         self.namespace = f'/t{uuid.uuid4().hex[:8]}/wheel'
         parameters = {
@@ -154,6 +157,8 @@ class DriveHarness(DriveClient):
         self.stop_stream()
         self.executor.remove_node(self.node)
         self.node.destroy_node()
+        # Every test doubles as a bug catcher: nothing may raise inside the drive loop.
+        assert self.node.controller.loop_errors == 0, 'exceptions inside the drive loop'
         self.tester.destroy_node()
         self.executor.shutdown(timeout_sec=1.0)
         self.line.stop()

@@ -86,3 +86,38 @@ def test_modbus_tcp_twin(sim_node):
         assert node.drives[0].value('0x2001') == 25.0
     finally:
         transport.close()
+
+
+def set_parameter(client, name: str, value: ParameterValue):
+    result = call(client, SetParameters, 'sim_drive/set_parameters', SetParameters.Request(
+        parameters=[ParameterMsg(name=name, value=value)]))
+    return result.results[0]
+
+
+def test_run_time_parameters_work_in_both_directions(sim_node, tmp_path):
+    """What `ros2 param set` sends: "[2]" as integers, "[]" untyped (ros2cli: bool array)."""
+    port = str(tmp_path / 'line')
+    node, client = sim_node(port=port, unit_ids=[1, 2])
+    ints = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=[2])
+    assert set_parameter(client, 'silent_unit_ids', ints).successful
+    assert node.drives[1].silent and not node.drives[0].silent
+    empty = ParameterValue(type=ParameterType.PARAMETER_BOOL_ARRAY, bool_array_value=[])
+    assert set_parameter(client, 'silent_unit_ids', empty).successful
+    assert not node.drives[1].silent                          # plugged back the obvious way
+    codes = ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY,
+                           string_array_value=['A00.15'])
+    assert set_parameter(client, 'refused', codes).successful
+    assert node.drives[0].refused and node.drives[1].refused
+    bad = ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY,
+                         string_array_value=['Z99.99'])
+    result = set_parameter(client, 'refused', bad)
+    assert not result.successful and 'Z99.99' in result.reason
+    assert node.drives[0].refused, 'a refused change changes nothing'
+    assert set_parameter(client, 'refused', empty).successful
+    assert not node.drives[0].refused
+    rate = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.25)
+    assert set_parameter(client, 'late_rate', rate).successful
+    assert node.line.faults.late_rate == 0.25
+    too_much = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.5)
+    assert not set_parameter(client, 'wrong_echo_rate', too_much).successful
+    assert node.line.faults.wrong_echo_rate == 0.0

@@ -16,4 +16,5 @@ def test_short_soak_has_no_unexplained_losses():
     assert report.commands_sent > 200
     assert report.commands_acknowledged > report.commands_sent * 0.5
     assert report.faults_seen == report.faults_injected   # each reported with its code
-    assert report.faults_injected + report.unplugs + report.corruption_bursts >= 3
+    assert report.faults_injected + report.unplugs + report.corruption_bursts + \
+        report.late_reply_bursts + report.wrong_echo_bursts >= 3

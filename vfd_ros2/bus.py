@@ -136,11 +136,12 @@ class Bus:
         cycle may add: one connect or one failed exchange (a bus connects or
         retries at most one offline drive per cycle) and one service action.
         """
-        controllers = list(self.controllers.values())
-        drives = [c.drive for c in controllers]
+        drives = [c.drive for c in self.controllers.values()]
         cycle = sum(drive.cycle_seconds() for drive in drives)
-        extra = max(max(d.connect_seconds() for d in drives),
-                    max(t.failed_exchange_seconds() for t in self.transports))
+        extra = 0.0
+        if len(drives) > 1:      # another drive's connect or failure (a drive's own is not)
+            extra = max(max(d.connect_seconds() for d in drives),
+                        max(t.failed_exchange_seconds() for t in self.transports))
         return max(self.period, cycle) + extra + max(d.action_seconds() for d in drives)
 
     def step(self) -> None:

@@ -288,10 +288,6 @@ class DriveController:
         if interval is None:
             interval = self.addressing_interval()
         self.protection = self.drive.host_loss_plan(self.config.drive_comm_timeout, interval)
-        if self.protection.weaker_than_requested:
-            log.warning('%s: drive-side host-loss protection %s (drive_comm_timeout %g s '
-                        'requested)', self.drive.hardware_id, self.protection.describe(),
-                        self.config.drive_comm_timeout)
         return self.protection
 
     # --- thread-safe API ------------------------------------------------------
@@ -336,6 +332,15 @@ class DriveController:
         raw = parameter.to_raw(value)
         with self._lock:
             self._setpoints[code] = raw
+
+    def parameter_writable(self, key: str) -> bool:
+        """Whether the parameter services would write this parameter at all."""
+        profile = self.drive.profile
+        parameter = profile.parameter(key)
+        managed = self.config.apply_commissioning and any(
+            item.code == parameter.code for item in profile.commissioning)
+        return parameter.writable and parameter.code not in profile.control_owned and \
+            not managed
 
     def check_parameter_write(self, key: str, value: float) -> None:
         """Refuse a parameter write that must not reach the loop (ParameterError says why).
@@ -498,6 +503,10 @@ class DriveController:
         for problem in problems:
             # A setting the drive refuses must not keep it offline: report and go on.
             log.error('%s: not applied at connect: %s', drive.hardware_id, problem)
+        if not self._was_online and self.protection.weaker_than_requested:
+            log.warning('%s: drive-side host-loss protection %s (drive_comm_timeout %g s '
+                        'requested)', drive.hardware_id, self.protection.describe(),
+                        self.config.drive_comm_timeout)
         self._settings_refused = tuple(problems)
         self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
         with self._lock:

@@ -119,7 +119,7 @@ def size_comm_timeout(parameter: Parameter, requested: float,
     if value > highest + 1e-9:
         value = highest
         notes.append(f'{code} allows at most {highest:g} s')
-    value = round(value / step) * step
+    value = round(round(value / step) * step, 9)     # on the grid, without float noise
     return value, '; '.join(notes)
 
 

@@ -80,6 +80,23 @@ def bus_diagnostic_name(node_fqn: str, bus: str) -> str:
     return f'{node_fqn.lstrip("/")}: bus {bus}'
 
 
+def _warnings(state: DriveState) -> list[str]:
+    """List what an integrator must know although the drive runs (diagnostics WARN)."""
+    warnings = []
+    if state.warning:
+        warnings.append(f'warning {state.warning_code}.{state.warning_subcode}')
+    if state.loop_errors:
+        warnings.append(f'{state.loop_errors} internal errors in the drive loop (a bug)')
+    protection = state.protection
+    if not protection.active:
+        warnings.append(f'no drive-side host-loss protection: {protection.note}')
+    elif protection.weaker_than_requested:
+        warnings.append(f'host-loss protection weaker than requested: {protection.describe()}')
+    if state.unavailable:
+        warnings.append(f'the drive refuses: {"; ".join(state.unavailable)}')
+    return warnings
+
+
 def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> DiagnosticStatus:
     """One /diagnostics entry for the drive (aggregator-friendly name and keys)."""
     status = DiagnosticStatus()
@@ -92,22 +109,9 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         fault = state.active_fault
         status.level = DiagnosticStatus.ERROR
         status.message = f'fault {fault.display} {fault.name}'
-    elif state.warning:
+    elif warnings := _warnings(state):
         status.level = DiagnosticStatus.WARN
-        status.message = f'warning {state.warning_code}.{state.warning_subcode}'
-    elif state.loop_errors:
-        status.level = DiagnosticStatus.WARN
-        status.message = f'{state.loop_errors} internal errors in the drive loop (a bug)'
-    elif not state.protection.active:
-        status.level = DiagnosticStatus.WARN
-        status.message = f'no drive-side host-loss protection: {state.protection.note}'
-    elif state.protection.weaker_than_requested:
-        status.level = DiagnosticStatus.WARN
-        status.message = f'host-loss protection weaker than requested: ' \
-            f'{state.protection.describe()}'
-    elif state.unavailable:
-        status.level = DiagnosticStatus.WARN
-        status.message = f'the drive refuses: {"; ".join(state.unavailable)}'
+        status.message = '; '.join(warnings)
     else:
         status.level = DiagnosticStatus.OK
         status.message = state.state if not state.stop_reason else \

@@ -195,8 +195,7 @@ class DriveNode(Node):
                     else -math.inf
                 response.maximum = float(parameter.maximum) if parameter.maximum is not None \
                     else math.inf
-                response.writable = parameter.writable and \
-                    parameter.code not in self.controller.drive.profile.control_owned
+                response.writable = self.controller.parameter_writable(parameter.code)
         except ParameterError as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # noqa: BLE001

@@ -10,9 +10,16 @@ Parameters:
   baudrate           0 = the profile's factory setting (used for wire time)
   emulate_wire_time  delay replies by their time on the wire at the baud rate
   corrupt_rate       fraction of replies corrupted (bad CRC, truncated, wrong id)
-  silent_unit_ids    drives that do not hear or answer (cable unplugged);
-                     can be changed at run time with `ros2 param set`
+  late_rate          fraction of replies sent late, late_delay [min, max] s after
+                     the request (set it just beyond the driver's transport.timeout);
+                     late_deaf: the slave drops what it hears meanwhile
+  wrong_echo_rate    fraction of write replies naming another value / count
+  trailing_rate      fraction of replies followed by stray bytes
+  silent_unit_ids    drives that do not hear or answer (cable unplugged)
+  refused            ["A00.15", ...] registers every drive refuses (illegal address)
   initial_values     ["B04.02=1.0", ...] parameter values at power-up
+The line faults, silent_unit_ids and refused can be changed at run time with
+`ros2 param set`, in both directions (an empty list "[]" clears them).
 Services:
   ~/inject_fault     vfd_ros2/srv/InjectFault
 """
@@ -61,8 +68,17 @@ class SimDriveNode(Node):
         initial = parse_initial_values(declare(
             'initial_values', Parameter.Type.STRING_ARRAY,
             'CODE=VALUE parameter values at power-up') or [])
-        declare('silent_unit_ids', Parameter.Type.INTEGER_ARRAY,
-                'drives that do not hear or answer (cable unplugged)')
+        self._declare_list('silent_unit_ids', 'drives that do not hear or answer (cable '
+                           'unplugged), e.g. [2]; [] plugs every drive back')
+        self._declare_list('refused', 'parameter codes every drive answers with "illegal '
+                           'address", e.g. ["A00.15"]')
+        for name, default, description in (
+                ('late_rate', 0.0, 'fraction of replies sent late'),
+                ('late_delay', [0.12, 0.14], 's [min, max] from the request to a late reply'),
+                ('late_deaf', False, 'a late slave drops the requests it hears meanwhile'),
+                ('wrong_echo_rate', 0.0, 'fraction of write echoes naming another value'),
+                ('trailing_rate', 0.0, 'fraction of replies followed by stray bytes')):
+            declare(name, default, description)
         tcp_port = int(declare('tcp_port', 1502, 'modbus_tcp: port on 127.0.0.1 (0 = any)'))
         if transport == 'canopen':
             self.line, where = self._canopen(profile, unit_ids, initial)
@@ -70,6 +86,9 @@ class SimDriveNode(Node):
             self.line, where = self._modbus(profile, transport, port, unit_ids, initial,
                                             baudrate, wire_time, corrupt, tcp_port)
         self.add_on_set_parameters_callback(self._on_parameters)
+        self._apply([self.get_parameter(name) for name in (
+            'refused', 'late_rate', 'late_delay', 'late_deaf', 'wrong_echo_rate',
+            'trailing_rate')])
         self.create_service(InjectFault, '~/inject_fault', self._on_inject_fault)
         self.get_logger().info(
             f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {where}')
@@ -104,15 +123,52 @@ class SimDriveNode(Node):
         return self.declare_parameter(
             name, default, ParameterDescriptor(description=description)).value
 
+    def _declare_list(self, name: str, description: str) -> None:
+        # Dynamically typed: "[]" on the command line has no element type, and must
+        # clear the list as well as "[2]" sets it.
+        self.declare_parameter(name, [], ParameterDescriptor(description=description,
+                                                             dynamic_typing=True))
+
     def _on_parameters(self, parameters: list) -> SetParametersResult:
-        for parameter in parameters:
-            if parameter.name == 'silent_unit_ids':
-                silent = {int(unit) for unit in parameter.value or []}
-                for drive in self.drives:
-                    drive.silent = drive.unit_id in silent
-            elif parameter.name == 'corrupt_rate' and hasattr(self.line, 'corrupt_rate'):
-                self.line.corrupt_rate = float(parameter.value)
+        try:
+            self._apply(parameters)
+        except (ValueError, TypeError, VfdError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: list) -> None:
+        """Apply run-time settings; raises before changing anything on a bad value."""
+        faults = getattr(self.line, 'faults', None)
+        changes = []
+        for parameter in parameters:
+            name, value = parameter.name, parameter.value
+            if name == 'silent_unit_ids':
+                silent = {int(unit) for unit in (value or [])}
+                changes.append(lambda s=silent: [setattr(d, 'silent', d.unit_id in s)
+                                                 for d in self.drives])
+            elif name == 'refused':
+                codes = [str(code) for code in (value or [])]
+                for drive in self.drives:
+                    for code in codes:
+                        drive.profile.parameter(code)          # unknown code: refused
+                changes.append(lambda c=codes: [d.refuse(c) for d in self.drives
+                                                if hasattr(d, 'refuse')])
+            elif name in ('corrupt_rate', 'late_rate', 'wrong_echo_rate', 'trailing_rate'):
+                rate = float(value)
+                if not 0.0 <= rate <= 1.0:
+                    raise ValueError(f'{name} must be within 0..1, got {rate}')
+                if faults is not None:
+                    changes.append(lambda n=name, r=rate: setattr(faults, n, r))
+            elif name == 'late_delay':
+                low, high = (float(v) for v in value)
+                if not 0.0 <= low <= high:
+                    raise ValueError('late_delay must be [min, max] with 0 <= min <= max')
+                if faults is not None:
+                    changes.append(lambda d=(low, high): setattr(faults, 'late_delay', d))
+            elif name == 'late_deaf' and faults is not None:
+                changes.append(lambda v=bool(value): setattr(faults, 'late_deaf', v))
+        for change in changes:
+            change()
 
     def _on_inject_fault(self, request: InjectFault.Request,
                          response: InjectFault.Response) -> InjectFault.Response:

@@ -234,9 +234,8 @@ class _RtuSettings:
                                 frame_gap(self.baudrate, char)) + TURNAROUND
 
     def failed_exchange_seconds(self) -> float:
-        """Return the request, the timeout, and the late-reply guard before the next ask."""
-        guard = getattr(self, 'late_reply_guard', 0.0)
-        return self.exchange_seconds(8, 0) + self.timeout + guard
+        """Return the request and the timeout (the late-reply guard holds only that unit)."""
+        return self.exchange_seconds(8, 0) + self.timeout
 
 
 class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
