@@ -25,8 +25,8 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 import vfd_ros2.transports.canopen  # noqa: F401 - the transport under test must import
-from vfd_ros2.node import DriveNode
-from vfd_ros2.profile import load_profile
+from vfd_ros2.profiles import load_profile
+from vfd_ros2.ros.drive_node import DriveNode
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 
 from .cases import _percentile, wait_for

@@ -28,13 +28,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
-from vfd_ros2.bus import Bus, parse_bus_config
-from vfd_ros2.config import build_controller
-from vfd_ros2.executable import spin_in_background
+from vfd_ros2.control.bus import Bus, parse_bus_config
+from vfd_ros2.control.factory import build_controller
 from vfd_ros2.msg import DriveStatus
-from vfd_ros2.node import DriveNode
-from vfd_ros2.profile import Profile, load_profile
-from vfd_ros2.rtu_timing import character_time, frame_gap, reply_size, transaction_time
+from vfd_ros2.profiles import Profile, load_profile
+from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
+from vfd_ros2.ros.drive_node import DriveNode
+from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.transports.modbus import ModbusRtuTransport, PymodbusRtuTransport
 
 from .simproc import SimProcess, wait_port
@@ -282,8 +282,7 @@ def software_floor(profile_name: str, cycles: int, stack: str,
                     serial.stopbits, emulate=False):
         wait_port(port)
         kwargs = dict(baudrate=serial.baudrate, parity=serial.parity, stopbits=serial.stopbits,
-                      bytesize=serial.bytesize, timeout=0.5,
-                      exception_codes=profile.modbus.exception_codes)
+                      bytesize=serial.bytesize, timeout=0.5)
         transport = ModbusRtuTransport(port, frame_gap=0.0, **kwargs) if stack == 'vfd_ros2' \
             else PymodbusRtuTransport(port, **kwargs)
         controller = build_controller({'drive.profile': profile_name, 'transport.port': port},
@@ -489,7 +488,7 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
               'drives': drives}
     result: dict[str, Any] = {'profile': profile_name, 'drives': units,
                               'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
-    entry = 'from vfd_ros2.bus_node import main'
+    entry = 'from vfd_ros2.ros.bus_node import main'
     with tempfile.TemporaryDirectory() as tmp, \
             SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
         wait_port(port)

@@ -46,7 +46,7 @@ def child_main() -> None:
 
 def _serve(conn: Any, kind: str, profile: str, units: list[int], where: str,
            baudrate: int, parity: str, stopbits: int, emulate: bool) -> None:
-    from vfd_ros2.profile import load_profile
+    from vfd_ros2.profiles import load_profile
     from vfd_ros2.sim.model import SimulatedDrive
 
     loaded = load_profile(profile)

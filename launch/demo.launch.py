@@ -4,7 +4,7 @@ The demo's velocity profile runs too (run_demo:=true).
 
     ros2 launch vfd_ros2 demo.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/sim_agv]
 
-The node list comes from vfd_ros2.bringup.sim_wheels (unit-tested); this file only
+The node list comes from vfd_ros2.apps.bringup.sim_wheels (unit-tested); this file only
 turns it into launch actions.
 """
 
@@ -14,7 +14,7 @@ from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from vfd_ros2.bringup import DEFAULT_SIM_DIR, sim_wheels
+from vfd_ros2.apps.bringup import DEFAULT_SIM_DIR, sim_wheels
 
 
 def _nodes(context):

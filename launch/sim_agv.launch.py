@@ -7,7 +7,7 @@ commands and the measured wheel speeds into odom.
     ros2 topic pub -r 20 /agv/cmd_vel geometry_msgs/msg/Twist "{linear: {x: 0.3}}"
     ros2 param set /agv/sim_drive silent_unit_ids "[2]"     # pull the right drive off the line
 
-The node list and the bus file come from vfd_ros2.bringup (unit-tested); this
+The node list and the bus file come from vfd_ros2.apps.bringup (unit-tested); this
 file only turns them into launch actions.
 """
 
@@ -16,7 +16,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from vfd_ros2.bringup import DEFAULT_SIM_DIR, sim_agv, sim_agv_bus, write_bus_file
+from vfd_ros2.apps.bringup import DEFAULT_SIM_DIR, sim_agv, sim_agv_bus, write_bus_file
 
 
 def _nodes(context):

@@ -27,8 +27,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from vfd_ros2.bus import Bus, parse_bus_config
-from vfd_ros2.profile import load_profile
+from vfd_ros2.control.bus import Bus, parse_bus_config
+from vfd_ros2.profiles import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 
@@ -122,7 +122,7 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
                 elif now > explained_until[index] and not offline_episode[index]:
                     offline_episode[index] = True
                     report.unexplained.append(f'drive {index + 1} offline at '
-                                              f'{now - start:.1f} s: {state.last_error}')
+                                              f'{now - start:.1f} s: {state.link_error}')
                 if state.fault:
                     fault = state.active_fault
                     if index in pending_faults and fault.code == pending_faults[index]:

@@ -17,9 +17,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from harness import DriveClient
-from vfd_ros2.executable import spin_in_background
-from vfd_ros2.node import DriveNode
-from vfd_ros2.profile import load_profile
+from vfd_ros2.profiles import load_profile
+from vfd_ros2.ros.drive_node import DriveNode
+from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 
 
@@ -57,7 +57,7 @@ class CanHarness:
             parameters = {
                 'drive.profile': profile, 'transport.type': 'canopen',
                 'transport.interface': 'virtual', 'transport.channel': self.channel,
-                'transport.unit_id': node_id, 'transport.object_set': object_set,
+                'transport.unit_id': node_id, 'drive.object_set': object_set,
                 'gear_ratio': 10.0, 'status_rate': 50.0, 'diagnostics_rate': 5.0,
                 'stop_timeout': 3.0, 'command_timeout': 0.5, 'reconnect_period': 0.2,
             }

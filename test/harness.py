@@ -22,10 +22,10 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from vfd_ros2.executable import spin_in_background
 from vfd_ros2.msg import DriveFault, DriveStatus
-from vfd_ros2.node import DriveNode
-from vfd_ros2.profile import load_profile
+from vfd_ros2.profiles import load_profile
+from vfd_ros2.ros.drive_node import DriveNode
+from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 from vfd_ros2.sim.tcp_server import SimulatedTcpServer

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vfd_ros2.bringup import (
+from vfd_ros2.apps.bringup import (
     DEFAULT_SIM_DIR,
     NodeSpec,
     drive_spec,
@@ -18,8 +18,8 @@ from vfd_ros2.bringup import (
     sim_agv_bus,
     sim_wheels,
 )
-from vfd_ros2.bus import parse_bus_config
-from vfd_ros2.config import SETTINGS
+from vfd_ros2.control.bus import parse_bus_config
+from vfd_ros2.control.settings import SETTINGS
 from vfd_ros2.sim.node import parse_initial_values
 
 LAUNCH_DIR = Path(__file__).resolve().parents[1] / 'launch'
@@ -42,7 +42,7 @@ def test_sim_wheels_pairs_a_simulator_with_a_driver_per_wheel(tmp_path):
 
 
 def test_sim_initial_values_are_valid_for_the_profile():
-    from vfd_ros2.profile import load_profile
+    from vfd_ros2.profiles import load_profile
     profile = load_profile('boneng_am')
     for spec in sim_wheels()[0::2]:
         for code, value in parse_initial_values(spec.parameters['initial_values']).items():
@@ -133,7 +133,7 @@ def test_drive_launch_file_passes_the_params_file(monkeypatch):
                          ids=lambda p: p.name)
 def test_example_configs_build_a_controller(path):
     """Every shipped example parameter file is valid for drive_node (nothing unknown)."""
-    from vfd_ros2.config import build_controller
+    from vfd_ros2.control.factory import build_controller
     from vfd_ros2.transports import load_transport_class
     values = yaml.safe_load(path.read_text())['/**']['ros__parameters']
     known = {s.name for s in SETTINGS} | {
@@ -176,7 +176,7 @@ def test_bus_launch_file(monkeypatch):
 
 
 def test_aggregator_yaml_groups_the_diagnostic_names():
-    from vfd_ros2.messages import bus_diagnostic_name, drive_diagnostic_name
+    from vfd_ros2.ros.messages import bus_diagnostic_name, drive_diagnostic_name
     path = LAUNCH_DIR.parent / 'config' / 'diagnostics_aggregator.yaml'
     analyzers = yaml.safe_load(path.read_text())['analyzers']['ros__parameters']
     drives = analyzers['traction_drives']['contains']

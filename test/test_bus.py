@@ -15,12 +15,12 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 from harness import wait_for
-from vfd_ros2.bus import parse_bus_config
-from vfd_ros2.bus_node import BusNode
+from vfd_ros2.control.bus import parse_bus_config
 from vfd_ros2.errors import ParameterError
-from vfd_ros2.executable import spin_in_background
 from vfd_ros2.msg import DriveStatus
-from vfd_ros2.profile import load_profile
+from vfd_ros2.profiles import load_profile
+from vfd_ros2.ros.bus_node import BusNode
+from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import SimulatedRtuLine
 
@@ -167,7 +167,7 @@ def test_shipped_bus_config_is_valid(name):
 
 def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
     """bus_node's Bus on CANopen: one thread serves every node; a dead node stalls nobody."""
-    from vfd_ros2.bus import Bus
+    from vfd_ros2.control.bus import Bus
     from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
     profile = load_profile('cia402_velocity')
     channel = f'vfdbus{uuid.uuid4().hex[:6]}'

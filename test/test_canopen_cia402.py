@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from vfd_ros2.cia402 import (
+from vfd_ros2.protocol.cia402 import (
     STATUSWORD_OF,
     Command,
     Goal,

@@ -15,10 +15,11 @@ import pytest
 import yaml
 
 from harness import wait_for
-from vfd_ros2.canopen_drive import CanopenDrive, pack_pdo, unpack_pdo
+from vfd_ros2.drives import drive_class_for
+from vfd_ros2.drives.canopen import CanopenDrive, pack_pdo, unpack_pdo
 from vfd_ros2.errors import CommTimeout, ProtocolException
-from vfd_ros2.profile import CanObject, ValueType, load_profile
-from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.profiles import CanObject, ValueType, load_profile
+from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from vfd_ros2.transports import load_transport_class
 from vfd_ros2.transports.canopen import SDO_ABORT_CODES, CanopenTransport, Emcy, abort_text
@@ -79,7 +80,7 @@ def kinco_drive(channel: str) -> CanopenDrive:
 
 def test_registered_by_name():
     cls = load_transport_class('canopen')
-    assert cls is CanopenTransport and cls.drive_class.endswith(':CanopenDrive')
+    assert cls is CanopenTransport and drive_class_for(cls) is CanopenDrive
 
 
 def test_s1_s2_write_a0_03_byte_for_byte(channel):

@@ -9,7 +9,7 @@ import pytest
 
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
 from harness import wait_for
-from vfd_ros2.cia402 import State
+from vfd_ros2.protocol.cia402 import State
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
 

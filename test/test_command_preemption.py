@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from unit_support import MemoryTransport, shipped_profile
-from vfd_ros2.controller import ControllerConfig, CycleLoop, DriveController
-from vfd_ros2.drive import ModbusDrive
-from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.control.controller import ControllerConfig, DriveController
+from vfd_ros2.control.loop import CycleLoop
+from vfd_ros2.drives.modbus import ModbusDrive
+from vfd_ros2.protocol.scaling import VelocityScaling
 
 SETPOINT = 0xE721    # BONENG AM P07.33
 
@@ -66,16 +67,16 @@ def test_a_repeated_command_waits_for_the_cycle():
     assert kinds and set(kinds) == {'read'}
 
 
-def test_the_loop_runs_urgent_work_when_woken_between_cycles():
+def test_the_loop_preempts_between_cycles_on_request():
     import threading
     woken = threading.Event()
     steps = []
     loop = CycleLoop('test', 3600.0, lambda: steps.append(1), lambda: None,
-                     urgent=woken.set)
+                     preempt=woken.set)
     loop.start()
     try:
-        loop.wake()
-        assert woken.wait(2.0), 'urgent work did not run before the next (hour-long) period'
+        loop.request_preempt()
+        assert woken.wait(2.0), 'preempt did not run before the next (hour-long) period'
         assert steps == [1]                          # and the cycle itself did not run again
     finally:
         loop.stop()

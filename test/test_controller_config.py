@@ -7,11 +7,12 @@ import math
 import pytest
 
 from unit_support import MemoryTransport, shipped_profile
-from vfd_ros2 import config
-from vfd_ros2.controller import CommandOutcome, ControllerConfig, DriveController
-from vfd_ros2.drive import ModbusDrive
+from vfd_ros2.control import settings as config
+from vfd_ros2.control.controller import ControllerConfig, DriveController
+from vfd_ros2.control.state import CommandOutcome
+from vfd_ros2.drives.modbus import ModbusDrive
 from vfd_ros2.errors import ParameterError
-from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.protocol.scaling import VelocityScaling
 
 # --- ControllerConfig ------------------------------------------------------------------------
 
@@ -214,6 +215,8 @@ def test_controller_config_from_settings():
             config.controller_config(settings(control_rate=value))
 
 
-def test_transport_settings_strip_the_prefix():
-    assert config.transport_settings({'transport.port': '/dev/x', 'transport.unit_id': 2,
-                                      'gear_ratio': 3.0}) == {'port': '/dev/x', 'unit_id': 2}
+def test_prefixed_settings_strip_the_prefix():
+    values = {'transport.port': '/dev/x', 'transport.unit_id': 2, 'gear_ratio': 3.0,
+              'drive.object_set': 'ds402'}
+    assert config.prefixed(values, 'transport') == {'port': '/dev/x', 'unit_id': 2}
+    assert config.prefixed(values, 'drive') == {'object_set': 'ds402'}

@@ -22,7 +22,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 from harness import wait_for
-from vfd_ros2.diff_drive import (
+from vfd_ros2.control.diff_drive import (
     UNKNOWN_VARIANCE,
     DiffDriveKinematics,
     OdometryIntegrator,
@@ -240,7 +240,7 @@ class DiffDriveRig:
     """DiffDriveNode + a tester (fake drives, cmd_vel, odom) spinning in a thread."""
 
     def __init__(self, context: Any, parameters: dict[str, Any] | None = None) -> None:
-        from vfd_ros2.diff_drive_node import DiffDriveNode
+        from vfd_ros2.ros.diff_drive_node import DiffDriveNode
         self.context = context
         self.namespace = f'/t{uuid.uuid4().hex[:8]}'
         ns = self.namespace
@@ -473,7 +473,7 @@ def test_publish_tf(make_rig, ros_context):
 
 
 def test_bad_parameters_are_refused(ros_context):
-    from vfd_ros2.diff_drive_node import DiffDriveNode
+    from vfd_ros2.ros.diff_drive_node import DiffDriveNode
     for name, value in (('wheel_radius', 0.0), ('cmd_vel_timeout', -1.0),
                         ('max_linear_velocity', -1.0), ('publish_rate', 0.0)):
         with pytest.raises(ParameterError, match=name):

@@ -10,7 +10,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from pymodbus.framer import FramerRTU
 
 from harness import wait_for
-from vfd_ros2.scaling import RPM_PER_RAD_S
+from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
 RATED_RPM = 1330.0   # D00.05 default: 100 % setpoint

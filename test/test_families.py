@@ -13,7 +13,7 @@ import time
 import pytest
 
 from harness import wait_for
-from vfd_ros2.profile import Access, available_profiles, load_profile
+from vfd_ros2.profiles import Access, available_profiles, load_profile
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
 # Modbus families here; CANopen-only profiles run the same suite in test_canopen_node.py.

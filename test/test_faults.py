@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from unit_support import shipped_profile
-from vfd_ros2.faults import NO_FAULT, describe_fault
-from vfd_ros2.profile import FaultEntry, FaultSpec
+from vfd_ros2.profiles import FaultEntry, FaultSpec
+from vfd_ros2.profiles.faults import NO_FAULT, describe_fault
 
 TABLE = {
     35: FaultEntry(code=35, name='Communication exception', remedy='Check the cables.',

@@ -17,11 +17,11 @@ from std_srvs.srv import Trigger
 
 from harness import wait_for
 from unit_support import shipped_profile
-from vfd_ros2.bus import Bus, parse_bus_config
-from vfd_ros2.drive import HOST_LOSS_JITTER, size_comm_timeout
+from vfd_ros2.control.bus import Bus, parse_bus_config
+from vfd_ros2.drives.base import HOST_LOSS_JITTER, size_comm_timeout
 from vfd_ros2.errors import ParameterError
 from vfd_ros2.msg import DriveStatus
-from vfd_ros2.rtu_timing import character_time, frame_gap, transaction_time
+from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, transaction_time
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
@@ -135,7 +135,7 @@ def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
 
 def test_a_garbled_line_never_lets_the_drive_time_out(tmp_path):
     """Going offline on garbage must not let the drive's own timer expire (keep-alive)."""
-    from vfd_ros2.config import build_controller
+    from vfd_ros2.control.factory import build_controller
     profile = shipped_profile('boneng_am')
     sim = SimulatedDrive(profile, 1, {'acceleration_time': 0.5})
     port = str(tmp_path / 'line')

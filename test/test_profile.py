@@ -12,8 +12,7 @@ import yaml
 
 from unit_support import shipped_profile
 from vfd_ros2.errors import ParameterError, ProfileError
-from vfd_ros2.faults import describe_fault
-from vfd_ros2.profile import (
+from vfd_ros2.profiles import (
     Access,
     DirectionMode,
     Parameter,
@@ -23,6 +22,7 @@ from vfd_ros2.profile import (
     load_profile,
     load_profile_file,
 )
+from vfd_ros2.profiles.faults import describe_fault
 
 SHIPPED = available_profiles()
 
@@ -348,17 +348,21 @@ REJECTIONS = {
     'unknown velocity key': (_set('velocity.setpiont', 'P0.01'), ['velocity', 'setpiont']),
     'unknown control key': (_set('control.edge', 0), ['control', 'edge']),
     'unknown fault key': (_set('faults.table.0.severity', 3), ['severity']),
-    'unknown flag key': (_set('flags.fault.bits', 3), ['flags.fault', 'bits']),
+    'unknown flag key': (_set('flags.fault.bits', 3), ['flags.fault', 'unknown keys', 'bits']),
     # missing required keys
-    'missing name': (_delete('name'), ["missing key 'name'"]),
-    'missing schema': (_delete('schema'), ["missing key 'schema'"]),
-    'missing monitor': (_delete('monitor'), ["missing key 'monitor'"]),
-    'missing parameter address': (_delete('parameters.1.address'), ["missing key 'address'"]),
+    'missing name': (_delete('name'), ["'name' is a required property"]),
+    'missing schema': (_delete('schema'), ["'schema' is a required property"]),
+    'missing monitor': (_delete('monitor'), ["'monitor' is a required property"]),
+    'missing parameter address': (_delete('parameters.1.address'),
+                                  ['parameters.1', "'address' is a required property"]),
     'missing parameter description': (_delete('parameters.0.description'),
-                                      ["missing key 'description'"]),
-    'missing velocity setpoint': (_delete('velocity.setpoint'), ["missing key 'setpoint'"]),
-    'missing control values': (_delete('control.values'), ["missing key 'values'"]),
-    'missing fault name': (_delete('faults.table.0.name'), ["missing key 'name'"]),
+                                      ["'description' is a required property"]),
+    'missing velocity setpoint': (_delete('velocity.setpoint'),
+                                  ["velocity: 'setpoint' is a required property"]),
+    'missing control values': (_delete('control.values'),
+                               ["control: 'values' is a required property"]),
+    'missing fault name': (_delete('faults.table.0.name'),
+                           ["faults.table.0: 'name' is a required property"]),
     # references to codes that are not in the table
     'monitor names unknown code': (_set('monitor.temperature', 'X9.99'),
                                    ['monitor.temperature', "'X9.99'", 'not in the parameter']),
@@ -385,10 +389,11 @@ REJECTIONS = {
                                                    {'code': 1, 'name': 'b'}]),
                              ['fault code 1', 'defined twice']),
     # values
-    'scale 0': (_set('parameters.1.scale', 0), ['parameters[1]', 'scale must not be 0']),
+    'scale 0': (_set('parameters.1.scale', 0), ['parameters.1.scale', 'should not be valid']),
     'address above 16 bits': (_set('parameters.2.address', 0x10000),
-                              ['parameters[2]', '0x10000', '16-bit']),
-    'negative address': (_set('parameters.2.address', -5), ['parameters[2]', '16-bit']),
+                              ['parameters.2.address', '65536', 'maximum of 65535']),
+    'negative address': (_set('parameters.2.address', -5),
+                         ['parameters.2.address', 'minimum of 0']),
     'address not a number': (_set('parameters.2.address', '0x1002'), ['address']),
     'scale not a number': (_set('parameters.1.scale', 'tenth'), ['scale', 'tenth']),
     'bad value type': (_set('parameters.1.type', 'float64'), ['float64', 'uint16']),
@@ -397,7 +402,7 @@ REJECTIONS = {
     'bad flag rule': (_set('flags.fault.rule', 'odd'), ['odd', 'nonzero']),
     'unsupported schema': (_set('schema', 2), ['schema']),
     'every below 1': (_set('monitor.fault_code', {'code': 'P0.03', 'every': 0}),
-                      ['monitor.fault_code.every']),
+                      ['monitor.fault_code.every', 'minimum of 1']),
     # cross-checks
     'flag on undefined signal': (_set('flags.running', {'signal': 'run_flag', 'rule': 'nonzero'}),
                                  ['flags.running', "'run_flag'", 'monitor does not define']),
@@ -419,7 +424,7 @@ def test_loader_rejects(write_profile, mutate, expected):
 @pytest.mark.parametrize('action', ['run', 'stop', 'fault_reset'])
 def test_loader_requires_the_basic_commands(write_profile, action):
     path = write_profile(_delete(f'control.values.{action}'))
-    with pytest.raises(ProfileError, match=f"control.values needs '{action}'"):
+    with pytest.raises(ProfileError, match=f"control.values: '{action}' is a required property"):
         load_profile_file(path)
 
 

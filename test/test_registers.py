@@ -6,8 +6,14 @@ import random
 
 import pytest
 
-from vfd_ros2.profile import Parameter, ValueType, WordOrder
-from vfd_ros2.registers import ReadBlock, decode_words, encode_words, plan_reads, to_signed
+from vfd_ros2.profiles import Parameter, ValueType, WordOrder
+from vfd_ros2.protocol.registers import (
+    ReadBlock,
+    decode_words,
+    encode_words,
+    plan_reads,
+    to_signed,
+)
 
 
 def param(value_type: ValueType, order: WordOrder = WordOrder.HIGH_FIRST) -> Parameter:

@@ -143,8 +143,7 @@ def test_refused_register_is_a_protocol_exception_not_a_comm_failure(tmp_path):
     drive, _ = distinct_drive(1)
     drive.refuse(['A00.15'])
     line = SimulatedRtuLine([drive], tmp_path / 'line', tick_period=0.001).start()
-    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT,
-                                   exception_codes=drive.profile.modbus.exception_codes)
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
     address = drive.profile.parameter('A00.15').address
     try:
         with pytest.raises(ProtocolException) as info:
@@ -152,6 +151,6 @@ def test_refused_register_is_a_protocol_exception_not_a_comm_failure(tmp_path):
     finally:
         transport.close()
         line.stop()
-    assert info.value.code == 2 and 'illegal address' in info.value.text
+    assert info.value.code == 2 and 'illegal data address' in info.value.text
     assert not isinstance(info.value, TransportError)
     assert transport.stats_for(1).exceptions == 1 and transport.stats_for(1).timeouts == 0

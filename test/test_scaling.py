@@ -7,8 +7,8 @@ import math
 import pytest
 
 from vfd_ros2.errors import ParameterError
-from vfd_ros2.profile import SpeedUnit
-from vfd_ros2.scaling import RPM_PER_RAD_S, VelocityScaling
+from vfd_ros2.profiles import SpeedUnit
+from vfd_ros2.protocol.scaling import RPM_PER_RAD_S, VelocityScaling
 
 TWO_PI = 2.0 * math.pi
 

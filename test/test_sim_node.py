@@ -11,7 +11,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from harness import wait_for
-from vfd_ros2.executable import spin_in_background
+from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.sim.node import SimDriveNode
 from vfd_ros2.srv import InjectFault
 from vfd_ros2.transports.modbus import ModbusRtuTransport, ModbusTcpTransport

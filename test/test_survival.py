@@ -16,7 +16,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64
 
 from harness import wait_for
-from vfd_ros2.profile import load_profile
+from vfd_ros2.profiles import load_profile
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import SimulatedRtuLine
 

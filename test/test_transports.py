@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from unit_support import shipped_profile
-from vfd_ros2.drive import ModbusDrive
+from vfd_ros2.drives.modbus import ModbusDrive
 from vfd_ros2.errors import TransportLoadError
-from vfd_ros2.scaling import VelocityScaling
+from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.transports import (
     BUILTIN_TRANSPORTS,
     ENTRY_POINT_GROUP,
@@ -78,7 +78,7 @@ class LoopbackTransport(RegisterTransport):
         self.is_open = False
 
     @classmethod
-    def from_settings(cls, settings, profile):
+    def from_settings(cls, settings):
         return cls()
 
     @property
@@ -169,7 +169,7 @@ def test_plugin_loads(plugin):
     assert cls.__module__ == 'fake_vfd_plugin'
     assert issubclass(cls, RegisterTransport)
     assert [p.name for p in cls.parameters] == ['size']
-    transport = cls.from_settings({'size': 10}, shipped_profile('boneng_am'))
+    transport = cls.from_settings({'size': 10})
     transport.write_registers(1, 0x10, [5, 6])
     assert transport.read_registers(1, 0x0F, 4) == [0, 5, 6, 0]
     assert transport.stats.transactions == 2
@@ -220,7 +220,7 @@ def words(value: int) -> int:
 
 def test_drive_polls_over_the_plugin_transport(plugin):
     profile = shipped_profile('boneng_am')
-    transport = load_transport_class('loopback').from_settings({}, profile)
+    transport = load_transport_class('loopback').from_settings({})
     scaling = VelocityScaling(gear_ratio=10.0, rated_speed_rpm=1330.0, pole_pairs=2)
     drive = ModbusDrive(profile, transport, 3, scaling)
     assert drive.hardware_id == 'boneng_am@loopback#3'
@@ -266,7 +266,7 @@ def test_drive_polls_over_the_plugin_transport(plugin):
 
 def test_drive_writes_over_the_plugin_transport(plugin):
     profile = shipped_profile('boneng_am')
-    transport = load_transport_class('loopback').from_settings({}, profile)
+    transport = load_transport_class('loopback').from_settings({})
     scaling = VelocityScaling(gear_ratio=10.0, rated_speed_rpm=1330.0, pole_pairs=2)
     drive = ModbusDrive(profile, transport, 1, scaling)
     half_rated = 665.0 / 10.0 * 2 * math.pi / 60          # rad/s: 50 % of 1330 rpm

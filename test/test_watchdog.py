@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from vfd_ros2.watchdog import CommandWatchdog
+from vfd_ros2.control.watchdog import CommandWatchdog
 
 
 class FakeClock:

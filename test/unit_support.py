@@ -5,7 +5,7 @@ from __future__ import annotations
 import functools
 from typing import Any, Mapping
 
-from vfd_ros2.profile import Profile, load_profile
+from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.transports.base import RegisterTransport
 
 
@@ -25,7 +25,7 @@ class MemoryTransport(RegisterTransport):
         self.is_open = False
 
     @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> MemoryTransport:
+    def from_settings(cls, settings: Mapping[str, Any]) -> MemoryTransport:
         return cls()
 
     @property

@@ -9,7 +9,7 @@ parameters' objects). What it does, over real CAN frames:
 - takes PDO communication and mapping parameters, receives RPDOs and sends its
   TPDOs itself (on change and on the event timer), in NMT Operational only;
 - NMT commands, boot-up, heartbeat production at 0x1017;
-- the CiA 402 state machine (``vfd_ros2.cia402``) or a manufacturer command word
+- the CiA 402 state machine (``vfd_ros2.protocol.cia402``) or a manufacturer command word
   (Kinco 0x2A00), a speed ramp, EMCY on faults and on their reset;
 - fault injection, silence injection (cable unplugged), a drive that cannot be
   enabled, and a motor stop when the master's RPDOs stop (0x1400:05 deadline).
@@ -28,15 +28,15 @@ import canopen
 from canopen import objectdictionary as od
 from canopen.sdo import SdoAbortedError
 
-from ..cia402 import STATUSWORD_OF, ControlBit, State, transition
 from ..errors import ParameterError
-from ..profile import (
+from ..profiles import (
     ControlStyle,
     EmcyFault,
     Parameter,
     Profile,
     ValueType,
 )
+from ..protocol.cia402 import STATUSWORD_OF, ControlBit, State, transition
 
 _DATA_TYPE = {
     ValueType.UINT8: od.UNSIGNED8, ValueType.INT8: od.INTEGER8,

@@ -22,7 +22,7 @@ import time
 from typing import Callable
 
 from ..errors import ParameterError
-from ..profile import (
+from ..profiles import (
     DirectionMode,
     FlagRule,
     FlagRuleKind,
@@ -31,7 +31,7 @@ from ..profile import (
     Profile,
     SpeedUnit,
 )
-from ..registers import decode_words, encode_words
+from ..protocol.registers import decode_words, encode_words
 
 #: roles whose values come from the physics, not from inverting a flag rule
 PHYSICAL_ROLES = frozenset({

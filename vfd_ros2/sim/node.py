@@ -35,8 +35,8 @@ from rclpy.parameter import Parameter
 from vfd_ros2.srv import InjectFault
 
 from ..errors import VfdError
-from ..executable import run_node
-from ..profile import load_profile
+from ..profiles import load_profile
+from ..ros.executable import run_node
 from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
 from .rtu_line import SimulatedRtuLine

@@ -44,7 +44,7 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
-from ..rtu_timing import character_time, frame_gap, tighten_timer_slack
+from ..protocol.rtu_timing import character_time, frame_gap, tighten_timer_slack
 from .dispatch import answer
 from .model import SimulatedDrive
 

@@ -1,12 +1,16 @@
-"""The contract every register transport fulfils."""
+"""The contract every transport fulfils: a link that moves raw values, nothing more.
+
+A transport knows nothing of drives, profiles, scaling or ROS: it is built from
+plain settings (``from_settings``), opens and closes its link, and moves raw
+values (registers, objects) with bounded waits. The drive layer
+(``vfd_ros2.drives``) turns a profile plus a transport into drive verbs.
+"""
 
 from __future__ import annotations
 
 import abc
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
-
-from ..profile import Profile
 
 
 @dataclass(frozen=True)
@@ -39,19 +43,17 @@ class TransportStats:
 
 
 class Transport(abc.ABC):
-    """A link to one drive, found by name through the plugin registry.
+    """A link to one or several drives, found by name through the plugin registry.
 
-    Implementations know nothing of ROS. Every method either completes within
-    the configured timeout or raises a ``TransportError`` / ``ProtocolException``;
-    none may block indefinitely. Calls come from one thread at a time.
-    ``drive_class`` is what turns a profile plus this transport into drive verbs
-    (``vfd_ros2.drive.Drive``); register transports use ``ModbusDrive``.
+    Every method either completes within the configured timeout or raises a
+    ``TransportError`` / ``ProtocolException``; none may block indefinitely.
+    Calls come from one thread at a time. Which drive class serves a transport
+    is decided by the drive registry from the transport's base class
+    (``vfd_ros2.drives``): a ``RegisterTransport`` plugin gets ``ModbusDrive``.
     """
 
     #: settings the node declares for this transport (name, default, description)
     parameters: ClassVar[tuple[TransportParameter, ...]] = ()
-    #: "module:Class" of the drive implementation for this transport
-    drive_class: ClassVar[str] = 'vfd_ros2.drive:ModbusDrive'
     #: can several drives share one instance (one port, many slave ids)?
     shared_by_drives: ClassVar[bool] = True
 
@@ -72,11 +74,11 @@ class Transport(abc.ABC):
 
     @classmethod
     @abc.abstractmethod
-    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> 'RegisterTransport':
-        """Build from the node's ``transport.*`` values.
+    def from_settings(cls, settings: Mapping[str, Any]) -> 'Transport':
+        """Build from plain ``transport.*`` values (every name of ``parameters`` is given).
 
-        The profile supplies the drive's factory link settings (used where a
-        setting is 0 or empty) and its exception-code meanings.
+        Drive-dependent defaults (e.g. a drive's factory baud rate where the
+        setting is 0) are filled in by the drive layer before this is called.
         """
 
     @property

@@ -1,7 +1,7 @@
 """CANopen (CiA 301) transport: SDO, PDO, NMT, heartbeat and EMCY on python-can + canopen.
 
 Moves raw object values to and from one node; knows nothing of drives or
-scaling (``vfd_ros2.canopen_drive`` does). The bus is opened per transport, so
+scaling (``vfd_ros2.drives.canopen`` does). The bus is opened per transport, so
 several drives on one physical bus are independent: a dead node only costs
 its own controller its timeouts.
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
 from ..errors import CommTimeout, ParameterError, ProtocolException, TransportError
-from ..profile import Profile, ValueType
+from ..protocol.values import ValueType
 from .base import Transport, TransportParameter
 
 log = logging.getLogger(__name__)
@@ -154,20 +154,12 @@ class CanopenTransport(Transport):
                            "profile's"),
         TransportParameter('heartbeat_timeout', 0.0, 's without heartbeat before offline; 0 = '
                            "the profile's factor x heartbeat_ms"),
-        TransportParameter('object_set', '', "CANopen object set of the profile (Kinco: "
-                           "manufacturer | ds402); '' = the profile's choice"),
-        TransportParameter('velocity_scale', 0.0, "rpm per count of the target/actual velocity "
-                           "objects; 0 = the profile's"),
-        TransportParameter('transition_timeout', 1.0, 's a CiA 402 transition may take before '
-                           'it is reported as stuck'),
     )
-    drive_class = 'vfd_ros2.canopen_drive:CanopenDrive'
     shared_by_drives = False   # one handle per node; bus_node opens one per drive
 
     def __init__(self, interface: str = 'virtual', channel: str = 'vcan0', bitrate: int = 0,
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
-                 heartbeat_timeout: float = 0.0, object_set: str = '',
-                 velocity_scale: float = 0.0, transition_timeout: float = 1.0,
+                 heartbeat_timeout: float = 0.0,
                  bus_factory: Callable[..., Any] | None = None) -> None:
         super().__init__()
         if not timeout > 0:
@@ -179,9 +171,6 @@ class CanopenTransport(Transport):
         self.eds_file = eds_file
         self.heartbeat_ms = int(heartbeat_ms)
         self.heartbeat_timeout = float(heartbeat_timeout)
-        self.object_set = object_set
-        self.velocity_scale = float(velocity_scale)
-        self.transition_timeout = float(transition_timeout)
         self._bus_factory = bus_factory
         self.node_id = 0
         self.network: Any = None
@@ -197,19 +186,14 @@ class CanopenTransport(Transport):
         self._supervise_from = 0.0
 
     @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> 'CanopenTransport':
-        if profile.canopen is None:
-            raise ParameterError(f'profile {profile.name} has no canopen section')
+    def from_settings(cls, settings: Mapping[str, Any]) -> 'CanopenTransport':
         return cls(interface=str(settings.get('interface', 'socketcan')),
                    channel=str(settings.get('channel', 'can0')),
                    bitrate=int(settings.get('bitrate', 0) or 0),
                    timeout=float(settings.get('timeout', 0.1) or 0.1),
                    eds_file=str(settings.get('eds_file', '') or ''),
                    heartbeat_ms=int(settings.get('heartbeat_ms', 0) or 0),
-                   heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0),
-                   object_set=str(settings.get('object_set', '') or ''),
-                   velocity_scale=float(settings.get('velocity_scale', 0.0) or 0.0),
-                   transition_timeout=float(settings.get('transition_timeout', 1.0) or 1.0))
+                   heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0))
 
     @property
     def description(self) -> str:

@@ -23,9 +23,8 @@ from pymodbus.pdu.register_message import (
     WriteSingleRegisterRequest,
 )
 
-from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
-from ..profile import Profile
-from ..rtu_timing import character_time, frame_gap, reply_size, transaction_time
+from ..errors import BadFrame, CommTimeout, ParameterError, ProtocolException, TransportError
+from ..protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
 from .base import RegisterTransport, TransportParameter
 from .rtu_link import LinkBadFrame, LinkLost, LinkTimeout, RtuLink
 
@@ -33,8 +32,8 @@ from .rtu_link import LinkBadFrame, LinkLost, LinkTimeout, RtuLink
 # diagnostics); pymodbus' own error logging would repeat each one per cycle.
 logging.getLogger('pymodbus').setLevel(logging.CRITICAL)
 
-#: Modbus exception codes as the specification defines them; a profile's own
-#: meanings (some drives use 3 for "CRC error") take precedence.
+#: Modbus exception codes as the specification defines them; the drive layer
+#: re-explains them with the drive's own manual (some drives use 3 for "CRC error").
 STANDARD_EXCEPTIONS: dict[int, str] = {
     1: 'illegal function',
     2: 'illegal data address',
@@ -59,9 +58,8 @@ class _ModbusTransport(RegisterTransport):
     multiple write.
     """
 
-    def __init__(self, exception_codes: Mapping[int, str]) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self._exception_text = {**STANDARD_EXCEPTIONS, **exception_codes}
 
     def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         raise NotImplementedError
@@ -75,7 +73,7 @@ class _ModbusTransport(RegisterTransport):
         if isinstance(reply, ExceptionResponse):
             self.count(unit, 'exceptions')
             code = reply.exception_code
-            raise ProtocolException(code, self._exception_text.get(code, 'unknown exception'),
+            raise ProtocolException(code, STANDARD_EXCEPTIONS.get(code, 'unknown exception'),
                                     what)
         if reply.isError():
             self.count(unit, 'bad_frames')
@@ -121,8 +119,8 @@ class _ModbusTransport(RegisterTransport):
 class _PymodbusTransport(_ModbusTransport):
     """A transport on one of pymodbus' synchronous clients (TCP; RTU for comparison)."""
 
-    def __init__(self, exception_codes: Mapping[int, str]) -> None:
-        super().__init__(exception_codes)
+    def __init__(self) -> None:
+        super().__init__()
         self._received = b''
         self._client: ModbusSerialClient | ModbusTcpClient = self._make_client()
 
@@ -205,16 +203,17 @@ class _RtuSettings:
     bytesize: int
 
     @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> Any:
-        factory = profile.modbus.serial
+    def from_settings(cls, settings: Mapping[str, Any]) -> Any:
         gap = float(settings.get('frame_gap', -1.0))
         guard = float(settings.get('late_reply_guard', -1.0))
-        return cls(port=str(settings['port']),
-                   baudrate=int(settings['baudrate']) or factory.baudrate,
-                   parity=str(settings['parity']) or factory.parity,
-                   stopbits=int(settings['stopbits']) or factory.stopbits,
-                   bytesize=factory.bytesize, timeout=float(settings['timeout']),
-                   exception_codes=profile.modbus.exception_codes,
+        baudrate, parity, stopbits = (int(settings['baudrate']), str(settings['parity']),
+                                      int(settings['stopbits']))
+        if not baudrate or not parity or not stopbits:
+            raise ParameterError(f'{cls.__name__}: baudrate, parity and stopbits must be set '
+                                 '(the drive layer fills in the factory values for 0 / "")')
+        return cls(port=str(settings['port']), baudrate=baudrate, parity=parity,
+                   stopbits=stopbits, bytesize=int(settings.get('bytesize', 8)),
+                   timeout=float(settings['timeout']),
                    frame_gap=gap if gap >= 0 else None,
                    late_reply_guard=guard if guard >= 0 else None)
 
@@ -249,9 +248,8 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
 
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
-                 exception_codes: Mapping[int, str] | None = None,
                  frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
-        super().__init__(exception_codes or {})
+        super().__init__()
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
@@ -312,7 +310,6 @@ class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
 
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
-                 exception_codes: Mapping[int, str] | None = None,
                  frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
@@ -320,7 +317,7 @@ class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
         self.stopbits = stopbits
         self.bytesize = bytesize
         self.timeout = timeout
-        super().__init__(exception_codes or {})
+        super().__init__()
 
     def _make_client(self) -> ModbusSerialClient:
         return ModbusSerialClient(
@@ -338,18 +335,16 @@ class ModbusTcpTransport(_PymodbusTransport):
         TransportParameter('timeout', 0.2, 'reply timeout in seconds'),
     )
 
-    def __init__(self, host: str, port: int = 502, timeout: float = 0.2,
-                 exception_codes: Mapping[int, str] | None = None) -> None:
+    def __init__(self, host: str, port: int = 502, timeout: float = 0.2) -> None:
         self.host = host
         self.port = port
         self.timeout = timeout
-        super().__init__(exception_codes or {})
+        super().__init__()
 
     @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], profile: Profile) -> 'ModbusTcpTransport':
+    def from_settings(cls, settings: Mapping[str, Any]) -> 'ModbusTcpTransport':
         return cls(host=str(settings['host']), port=int(settings['port']),
-                   timeout=float(settings['timeout']),
-                   exception_codes=profile.modbus.exception_codes)
+                   timeout=float(settings['timeout']))
 
     def _make_client(self) -> ModbusTcpClient:
         return ModbusTcpClient(self.host, port=self.port, timeout=self.timeout, retries=0,

@@ -46,7 +46,7 @@ import serial
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
-from ..rtu_timing import character_time, frame_gap, tighten_timer_slack
+from ..protocol.rtu_timing import character_time, frame_gap, tighten_timer_slack
 
 #: longest RTU frame (Modbus over Serial Line V1.02, 2.5.1.1: 256 bytes)
 MAX_FRAME = 256

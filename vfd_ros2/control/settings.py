@@ -1,21 +1,20 @@
-"""The driver's settings: one table of parameters, and what they build.
+"""The driver's settings: one table, shared by the ROS parameters and the factory.
 
-The node declares every entry below as a ROS parameter (plus the selected
-transport's own ``transport.*`` settings) and hands the values to
-``build_controller``; tests and tools call ``build_controller`` directly.
+Every entry is declared as a ROS parameter by the nodes (plus the selected
+transport's ``transport.*`` and drive class's ``drive.*`` settings); the factory
+(``factory.py``) fills in the defaults from here. Tools and tests use the same
+names without ROS.
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from .controller import ControllerConfig, DriveController
-from .errors import ParameterError
-from .profile import Profile, load_profile
-from .scaling import VelocityScaling
-from .transports import Transport, load_transport_class
+from ..errors import ParameterError
+from ..profiles import Profile
+from ..protocol.scaling import VelocityScaling
+from .controller import ControllerConfig
 
 
 @dataclass(frozen=True)
@@ -28,7 +27,8 @@ class Setting:
 SETTINGS: tuple[Setting, ...] = (
     Setting('drive.profile', 'boneng_am', 'drive family: a shipped profile name or a YAML path'),
     Setting('transport.type', 'modbus_rtu', 'transport plugin: modbus_rtu, modbus_tcp, ...'),
-    Setting('transport.unit_id', 1, "the drive's address on the link (Modbus slave id)"),
+    Setting('transport.unit_id', 1,
+            "the drive's address on the link (Modbus slave id, CANopen node id)"),
     Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn (> 0)'),
     Setting('invert_direction', False, 'reverse the sign between ROS and the drive'),
     Setting('motor.rated_speed_rpm', 0.0,
@@ -53,14 +53,14 @@ SETTINGS: tuple[Setting, ...] = (
 )
 
 
-def transport_settings(values: Mapping[str, Any]) -> dict[str, Any]:
-    """Return the ``transport.*`` values with the prefix removed."""
+def prefixed(values: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """Return the ``<prefix>.*`` values with the prefix removed."""
     return {key.split('.', 1)[1]: value for key, value in values.items()
-            if key.startswith('transport.')}
+            if key.startswith(f'{prefix}.')}
 
 
 def velocity_scaling(profile: Profile, values: Mapping[str, Any]) -> VelocityScaling:
-    """Gear, direction and motor nameplate (0 = the profile's default)."""
+    """Return gear, direction and motor nameplate (0 = the profile's default)."""
     def nameplate(setting: str, code: str, fallback: float) -> float:
         configured = float(values.get(setting, 0) or 0)
         if configured:
@@ -92,29 +92,3 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
         action_timeout=float(values['action_timeout']),
         stop_timeout=float(values['stop_timeout']),
     )
-
-
-def build_controller(values: Mapping[str, Any],
-                     transport: Transport | None = None) -> DriveController:
-    """Profile + transport + drive + loop from flat settings; raises VfdError.
-
-    With ``transport`` given (several drives on one bus) the drive shares it and
-    leaves opening and closing the port to the bus.
-    """
-    merged = {s.name: s.default for s in SETTINGS}
-    merged.update(values)
-    profile = load_profile(str(merged['drive.profile']))
-    transport_class = load_transport_class(str(merged['transport.type']))
-    shared = transport is not None
-    if transport is None:
-        settings = {p.name: p.default for p in transport_class.parameters}
-        settings.update(transport_settings(merged))
-        transport = transport_class.from_settings(settings, profile)
-    module_name, _, class_name = transport_class.drive_class.partition(':')
-    drive_class = getattr(importlib.import_module(module_name), class_name)
-    extra = {'owns_transport': False} if shared else {}
-    drive = drive_class(profile, transport, int(merged['transport.unit_id']),
-                        velocity_scaling(profile, merged), **extra)
-    controller = DriveController(drive, controller_config(merged))
-    controller.plan_host_loss()     # alone on its link; a bus re-plans for all its drives
-    return controller

@@ -16,10 +16,13 @@ from typing import Any, Callable, Mapping
 
 import yaml
 
-from .config import SETTINGS, build_controller
-from .controller import CycleLoop, DriveController
-from .errors import ParameterError
-from .transports.base import Transport, TransportStats
+from ..errors import ParameterError
+from ..transports import load_transport_class
+from ..transports.base import Transport, TransportStats
+from .controller import DriveController
+from .factory import build_controller, build_transport
+from .loop import CycleLoop
+from .settings import SETTINGS
 
 #: settings that belong to the bus, not to one drive
 BUS_KEYS = ('control_rate',)
@@ -104,21 +107,18 @@ class Bus:
         self.config = config
         self._clock = clock
         self.controllers: dict[str, DriveController] = {}
-        first = build_controller({**config.settings, **config.drives[0].settings})
-        self.transport: Transport = first.drive.transport
-        self.controllers[config.drives[0].key] = first
-        shared = type(self.transport).shared_by_drives
-        if shared:
-            first.drive.owns_transport = False
-        for entry in config.drives[1:]:
+        first_values = {**config.settings, **config.drives[0].settings}
+        shared = load_shared(first_values)
+        self.transport: Transport = build_transport(first_values)
+        for entry in config.drives:
             self.controllers[entry.key] = build_controller(
                 {**config.settings, **entry.settings},
-                transport=self.transport if shared else None)
+                transport=self.transport if shared or entry is config.drives[0] else None)
         self.transports = list({id(c.drive.transport): c.drive.transport
                                 for c in self.controllers.values()}.values())
         for controller in self.controllers.values():
             # On one line, any drive's new command goes out before the next status read.
-            controller.between_reads = self.write_pending_commands
+            controller.preempt_hook = self.preempt
         rate = float(config.settings.get('control_rate', 50.0))
         self.period = 1.0 / rate
         self.addressing_interval = self._addressing_interval()
@@ -154,9 +154,10 @@ class Bus:
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
-    def write_pending_commands(self) -> None:
+    def preempt(self) -> None:
+        """Write every drive's new command now, before the next status read."""
         for controller in self.controllers.values():
-            controller.write_pending_command()
+            controller.preempt()
 
     def finish(self) -> None:
         for controller in self.controllers.values():
@@ -167,9 +168,9 @@ class Bus:
     def start(self) -> None:
         if self._loop is None:
             self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
-                                   self.finish, self._clock, urgent=self.write_pending_commands)
+                                   self.finish, self._clock, preempt=self.preempt)
             for controller in self.controllers.values():
-                controller.wake = self._loop.wake
+                controller.request_preempt = self._loop.request_preempt
             self._loop.start()
 
     def shutdown(self, timeout: float = 3.0) -> None:
@@ -199,3 +200,8 @@ class Bus:
             transactions_per_second=rate, errors=stats.errors, timeouts=stats.timeouts,
             bad_frames=stats.bad_frames, utilisation=utilisation,
             overruns=self._loop.overruns if self._loop else 0)
+
+
+def load_shared(values: Mapping[str, Any]) -> bool:
+    """Return whether the bus's transport kind serves several drives on one instance."""
+    return load_transport_class(str(values.get('transport.type', 'modbus_rtu'))).shared_by_drives

@@ -19,10 +19,10 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .bus import Bus, BusStatistics, load_bus_config
+from ..control.bus import Bus, BusStatistics, load_bus_config
+from .drive_node import DriveNode
 from .executable import run_node
 from .messages import bus_diagnostic_name
-from .node import DriveNode
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,

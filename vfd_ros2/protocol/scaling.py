@@ -6,11 +6,20 @@ REP 103: the ROS side speaks rad/s at the wheel (output) shaft. The motor turns
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
-from .errors import ParameterError
-from .profile import SpeedUnit
+from ..errors import ParameterError
+
+
+class SpeedUnit(str, enum.Enum):
+    """Engineering unit of a speed setpoint or feedback register."""
+
+    PERCENT = 'percent'   # percent of the motor's rated speed
+    HZ = 'hz'             # output / synchronous frequency
+    RPM = 'rpm'           # motor shaft speed
+
 
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 

@@ -34,13 +34,16 @@ from std_srvs.srv import Trigger
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
-from .config import SETTINGS, build_controller
-from .controller import CommandOutcome, DriveController
-from .errors import ParameterError, VfdError, quote
+from ..control.controller import DriveController
+from ..control.factory import build_controller
+from ..control.settings import SETTINGS
+from ..control.state import CommandOutcome
+from ..drives import drive_class_for
+from ..errors import ParameterError, VfdError, quote
+from ..profiles import NO_FAULT
+from ..transports import load_transport_class
 from .executable import run_node
-from .faults import NO_FAULT
 from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
-from .transports import load_transport_class
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -61,9 +64,11 @@ class DriveNode(Node):
         super().__init__(node_name, **kwargs)
         values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
         transport_class = load_transport_class(str(values['transport.type']))
-        for setting in transport_class.parameters:
-            name = f'transport.{setting.name}'
-            values[name] = self._declare(name, setting.default, setting.description)
+        for prefix, settings in (('transport', transport_class.parameters),
+                                 ('drive', drive_class_for(transport_class).settings)):
+            for setting in settings:
+                name = f'{prefix}.{setting.name}'
+                values[name] = self._declare(name, setting.default, setting.description)
         self._owns_controller = controller is None
         self.controller: DriveController = controller or build_controller(values)
         self.profile_name = self.controller.drive.profile.name

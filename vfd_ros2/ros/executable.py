@@ -11,7 +11,7 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from .errors import VfdError
+from ..errors import VfdError
 
 #: start-up errors reported in one line (bad configuration), not as a traceback
 CONFIGURATION_ERRORS = (VfdError, ParameterException, ValueError)

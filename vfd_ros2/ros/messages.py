@@ -9,8 +9,8 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from vfd_ros2.msg import DriveFault, DriveStatus
 
-from .controller import DriveState
-from .faults import FaultInfo
+from ..control.state import DriveState
+from ..profiles import FaultInfo
 
 
 def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) -> DriveStatus:
@@ -28,7 +28,7 @@ def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) 
     msg.warning = state.warning
     msg.at_speed = state.at_speed
     msg.watchdog_tripped = state.watchdog_tripped
-    msg.run_state = int(state.mode)
+    msg.run_state = int(state.run_state)
     msg.state = state.state
     msg.stop_reason = state.stop_reason
     msg.host_loss_timeout = float(state.protection.timeout) if state.protection.active else 0.0
@@ -104,7 +104,7 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
     status.hardware_id = state.hardware_id
     if not state.online:
         status.level = DiagnosticStatus.ERROR if ever_online else DiagnosticStatus.STALE
-        status.message = f'offline: {state.last_error or "no reply"}'
+        status.message = f'offline: {state.link_error or "no reply"}'
     elif state.fault:
         fault = state.active_fault
         status.level = DiagnosticStatus.ERROR
@@ -147,7 +147,7 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         ('host-loss protection', state.protection.describe()),
         ('drive_comm_timeout requested (s)', f'{state.protection.requested:g}'),
         ('unavailable', '; '.join(state.unavailable)),
-        ('last error', state.last_error),
+        ('link error', state.link_error),
     ]
     status.values = [KeyValue(key=key, value=str(value)) for key, value in pairs]
     return status

@@ -39,8 +39,13 @@ from std_msgs.msg import Float64
 
 from vfd_ros2.msg import DriveStatus
 
-from .diff_drive import DiffDriveKinematics, OdometryIntegrator, RateLimiter, VelocityLimits
-from .errors import ParameterError
+from ..control.diff_drive import (
+    DiffDriveKinematics,
+    OdometryIntegrator,
+    RateLimiter,
+    VelocityLimits,
+)
+from ..errors import ParameterError
 from .executable import run_node
 
 PARAMETERS: tuple[tuple[str, Any, str], ...] = (

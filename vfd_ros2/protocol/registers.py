@@ -3,9 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Protocol
 
-from .profile import Parameter, ValueType, WordOrder
+from .values import ValueType, WordOrder
+
+
+class RegisterLayout(Protocol):
+    """What the codecs need to know of a value: its type and word order."""
+
+    @property
+    def type(self) -> ValueType: ...
+
+    @property
+    def word_order(self) -> WordOrder: ...
 
 
 def to_signed(raw: int, bits: int) -> int:
@@ -13,9 +23,9 @@ def to_signed(raw: int, bits: int) -> int:
     return raw - (1 << bits) if raw >> (bits - 1) else raw
 
 
-def decode_words(parameter: Parameter, words: list[int]) -> int:
+def decode_words(parameter: RegisterLayout, words: list[int]) -> int:
     """Decode registers as read into the parameter's raw integer (sign applied)."""
-    if parameter.register_count == 1:
+    if parameter.type.register_count == 1:
         raw = words[0] & 0xFFFF
     else:
         high, low = (words[0], words[1]) if parameter.word_order is WordOrder.HIGH_FIRST \
@@ -28,9 +38,9 @@ def decode_words(parameter: Parameter, words: list[int]) -> int:
     return raw
 
 
-def encode_words(parameter: Parameter, raw: int) -> list[int]:
+def encode_words(parameter: RegisterLayout, raw: int) -> list[int]:
     """Encode the parameter's raw integer as the registers to write."""
-    if parameter.register_count == 1:
+    if parameter.type.register_count == 1:
         return [raw & 0xFFFF]
     value = raw & 0xFFFFFFFF
     high, low = value >> 16, value & 0xFFFF

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .errors import ParameterError
+from ..errors import ParameterError
 
 #: Variance reported for a quantity that is not measured (z, roll, pitch, and the
 #: twist while a wheel status is stale or offline). Large, not infinite: many

@@ -215,9 +215,9 @@ def _start_canopen_wheels(wheels: list[str]) -> tuple[object, list[Node], object
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter as NodeParameter
 
-    from .node import DriveNode
-    from .profile import load_profile
-    from .sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    from ..profiles import load_profile
+    from ..ros.drive_node import DriveNode
+    from ..sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 
     profile = load_profile('cia402_velocity')
     channel = f'vfd_demo_{os.getpid()}'

@@ -1,13 +1,13 @@
 """Drive verbs over CANopen: a profile's ``canopen`` section plus a ``CanopenTransport``.
 
-Implements the ``vfd_ros2.drive.Drive`` protocol, so the controller and the node
+Implements the ``vfd_ros2.drives.modbus.Drive`` protocol, so the controller and the node
 are the same as for Modbus. At connect everything is set up over SDO (PDO
 mappings and transmission types, heartbeat, mode of operation, command source);
 afterwards each control cycle sends one RPDO (control word + target velocity)
 and each poll decodes the TPDOs the drive sent by itself: no SDO per cycle.
 
 Two control styles, chosen by the profile's object set:
-- ``cia402``: the CiA 402 state machine (``vfd_ros2.cia402``), walked one verified
+- ``cia402``: the CiA 402 state machine (``vfd_ros2.protocol.cia402``), walked one verified
   transition per cycle; the target velocity stays 0 until the drive reports
   Operation Enabled; fault reset is a rising edge of bit 7;
 - ``command_word``: a manufacturer command word (Kinco 0x2A00: 0x07 run, ...).
@@ -18,25 +18,27 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Callable
+from typing import Any, Callable, ClassVar, Mapping
 
-from .cia402 import Command, Goal, State, StatusBit, decode_state, next_command
-from .drive import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading
-from .errors import ParameterError, ProfileError, ProtocolException, TransportError
-from .faults import NO_FAULT, FaultInfo, describe_fault
-from .profile import (
+from ..errors import ParameterError, ProfileError, ProtocolException, TransportError
+from ..profiles import (
+    NO_FAULT,
     Access,
     CanObject,
     ControlStyle,
     EmcyFault,
+    FaultInfo,
     Parameter,
     Profile,
     StopAction,
     ValueType,
+    describe_fault,
 )
-from .scaling import VelocityScaling
-from .transports.base import TransportStats
-from .transports.canopen import CanopenTransport, NmtCommand, NmtState
+from ..protocol.cia402 import Command, Goal, State, StatusBit, decode_state, next_command
+from ..protocol.scaling import VelocityScaling
+from ..transports.base import TransportParameter, TransportStats
+from ..transports.canopen import CanopenTransport, NmtCommand, NmtState
+from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading
 
 log = logging.getLogger(__name__)
 
@@ -72,8 +74,25 @@ def unpack_pdo(objects: list[CanObject], data: bytes) -> list[int]:
 class CanopenDrive:
     """One drive on a CANopen transport, driven through its profile."""
 
+    settings: ClassVar[tuple[TransportParameter, ...]] = (
+        TransportParameter('object_set', '', "CANopen object set of the profile (Kinco: "
+                           "manufacturer | ds402); '' = the profile's choice"),
+        TransportParameter('velocity_scale', 0.0, "rpm per count of the target/actual velocity "
+                           "objects; 0 = the profile's"),
+        TransportParameter('transition_timeout', 1.0, 's a CiA 402 transition may take before '
+                           'it is reported as stuck'),
+    )
+
+    @classmethod
+    def link_settings(cls, profile: Profile, settings: Mapping[str, Any]) -> dict[str, Any]:
+        """Return the ``transport.*`` settings as given: the bus settings are the interface's."""
+        if profile.canopen is None:
+            raise ProfileError(f'profile {profile.name} has no canopen section')
+        return dict(settings)
+
     def __init__(self, profile: Profile, transport: CanopenTransport, unit_id: int,
-                 scaling: VelocityScaling) -> None:
+                 scaling: VelocityScaling, settings: Mapping[str, Any] | None = None,
+                 owns_transport: bool = True) -> None:
         if profile.canopen is None:
             raise ProfileError(f'profile {profile.name} has no canopen section')
         if not isinstance(transport, CanopenTransport):
@@ -84,9 +103,13 @@ class CanopenDrive:
         self.unit_id = unit_id
         self.scaling = scaling
         self.spec = profile.canopen
-        self.objects = self.spec.selected(transport.object_set)
+        values = {p.name: p.default for p in self.settings}
+        values.update(settings or {})
+        self.objects = self.spec.selected(str(values['object_set']))
         self.cia402 = self.objects.control is ControlStyle.CIA402
-        self.velocity_scale = transport.velocity_scale or self.objects.target_velocity.scale
+        self.velocity_scale = float(values['velocity_scale']) or \
+            self.objects.target_velocity.scale
+        self.transition_timeout = float(values['transition_timeout'])
         self.tpdo_layout = self._plan_tpdos()
         self.last_setpoint_raw = 0
         self.state: State | None = None
@@ -305,11 +328,11 @@ class CanopenDrive:
                 Goal.SWITCH_ON_DISABLED: State.SWITCH_ON_DISABLED}[goal]
         if done is not None and self.state is done:
             self._goal_since = now
-        elif done is not None and now - self._goal_since > self.transport.transition_timeout \
+        elif done is not None and now - self._goal_since > self.transition_timeout \
                 and not self.stuck:
             where = self.state.name if self.state is not None else 'unknown'
             self.stuck = (f'CiA 402: the drive stays in {where}, not {done.name}, after '
-                          f'{self.transport.transition_timeout:g} s')
+                          f'{self.transition_timeout:g} s')
             log.warning('%s: %s', self.hardware_id, self.stuck)
         return int(command) if command is not None else int(Command.DISABLE_VOLTAGE)
 
@@ -348,7 +371,7 @@ class CanopenDrive:
         if self.cia402 and self._status_role in self._values:
             self.state = decode_state(self._values[self._status_role])
 
-    def poll(self, cycle: int, between: Callable[[], None] | None = None) -> Reading:
+    def poll(self, cycle: int, preempt: Callable[[], None] | None = None) -> Reading:
         """Decode what the drive sent (TPDOs, EMCY); raise if its heartbeat is lost."""
         nmt = self.transport.check_alive()
         if self._configured and nmt is not None and nmt not in (NmtState.OPERATIONAL,):
@@ -380,7 +403,7 @@ class CanopenDrive:
                         self._emcy_fault.display, self._emcy_fault.name)
 
     def _reading(self) -> Reading:
-        reading = Reading(problem=self.stuck)
+        reading = Reading(stuck=self.stuck)
         monitor = self.objects.monitor
         for role, raw in self._values.items():
             obj = monitor[role]

@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from .config import SETTINGS
+from ..control.settings import SETTINGS
 
 DEFAULT_SIM_DIR = '/tmp/vfd_ros2/sim_agv'
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .profile import FaultSpec
+from .model import FaultSpec
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""Programs built on everything below: the demo and the bringup specs for launch files."""

@@ -1,0 +1,225 @@
+"""Service actions: verified steps run by the loop thread, one step per cycle.
+
+``ServiceActions`` defines what ``~/enable``, ``~/disable``, ``~/stop``,
+``~/reset_fault`` and the parameter services do, as generators that yield
+between steps, so a slow verification (a stop waiting for the ramp) never holds
+up the watchdog or the status. ``ActionQueue`` takes requests from any thread
+and answers each exactly once; identical trigger requests waiting together get
+the one result (a burst of ``~/enable`` calls is one enable).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+from concurrent.futures import Future
+from typing import Callable, Generator, Iterator
+
+from ..drives import Drive, Reading
+from ..errors import ParameterError, ProtocolException, TransportError, quote
+from .permit import Intent
+from .state import ActionResult
+
+log = logging.getLogger(__name__)
+
+Action = Generator[None, None, ActionResult]
+
+
+class ActionQueue:
+    """Requests from any thread; ``advance`` (loop thread) runs the current one a step."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.errors = 0                  # actions that raised an unexpected exception
+        self._incoming: queue.SimpleQueue[tuple[str | None, Callable[[], Action], Future]] = \
+            queue.SimpleQueue()
+        self._backlog: list[tuple[str | None, Callable[[], Action], Future]] = []
+        self._current: tuple[Iterator[None], list[Future]] | None = None
+
+    def submit(self, key: str | None, factory: Callable[[], Action]) -> Future:
+        """Queue an action; requests with the same ``key`` waiting together share one run."""
+        future: Future = Future()
+        self._incoming.put((key, factory, future))
+        return future
+
+    def _take_incoming(self) -> None:
+        while True:
+            try:
+                self._backlog.append(self._incoming.get_nowait())
+            except queue.Empty:
+                return
+
+    def advance(self) -> None:
+        """Run the current action one step (start the next one if none runs).
+
+        A TransportError fails the action and is raised again: the loop counts
+        it against the link.
+        """
+        if self._current is None:
+            self._take_incoming()
+            if not self._backlog:
+                return
+            key, factory, future = self._backlog.pop(0)
+            futures = [future]
+            if key is not None:
+                futures += [f for k, _, f in self._backlog if k == key]
+                self._backlog = [item for item in self._backlog if item[0] != key]
+            try:
+                self._current = (factory(), futures)
+            except Exception as exc:  # noqa: BLE001 - a bug must not lose the reply
+                self._internal_error(futures, exc)
+                return
+        steps, futures = self._current
+        try:
+            next(steps)
+            return
+        except StopIteration as done:
+            result = done.value
+        except (ParameterError, ProtocolException) as exc:
+            result = ActionResult(False, str(exc))
+        except TransportError as exc:
+            self._current = None
+            _resolve(futures, ActionResult(False, f'no valid reply from the drive: {exc}'))
+            raise
+        except Exception as exc:  # noqa: BLE001 - a bug must not lose the reply
+            self._current = None
+            self._internal_error(futures, exc)
+            return
+        self._current = None
+        _resolve(futures, result)
+
+    def fail_all(self, reason: str) -> None:
+        """Answer the current and every waiting action with ``reason`` (the link is down)."""
+        if self._current is not None:
+            _resolve(self._current[1], ActionResult(False, reason))
+            self._current = None
+        self._take_incoming()
+        backlog, self._backlog = self._backlog, []
+        _resolve([future for _, _, future in backlog], ActionResult(False, reason))
+
+    def _internal_error(self, futures: list[Future], exc: Exception) -> None:
+        self.errors += 1
+        log.exception('%s: action failed with an internal error: %s', self.name, exc)
+        _resolve(futures, ActionResult(False, f'internal error (a bug, please report): '
+                                              f'{exc!r}'))
+
+
+def _resolve(futures: list[Future], result: ActionResult) -> None:
+    for future in futures:
+        future.set_result(result)
+
+
+class ServiceActions:
+    """The steps of each service, on one drive and the host's ``Intent`` for it."""
+
+    def __init__(self, drive: Drive, intent: Intent, reading: Callable[[], Reading],
+                 commands_fresh: Callable[[], bool], check_write: Callable[[str, float], None],
+                 action_timeout: float, stop_timeout: float,
+                 clock: Callable[[], float]) -> None:
+        self.drive = drive
+        self.intent = intent
+        self._reading = reading
+        self._commands_fresh = commands_fresh
+        self._check_write = check_write
+        self.action_timeout = action_timeout
+        self.stop_timeout = stop_timeout
+        self._clock = clock
+        #: set when the idle command must be written again now, whatever was sent
+        self.reassert_idle = False
+        self._steps: dict[str, Callable[..., Action]] = {
+            'enable': self.enable, 'disable': self.disable, 'stop': self.stop,
+            'reset_fault': self.reset_fault, 'get_parameter': self.get_parameter,
+            'set_parameter': self.set_parameter}
+
+    def factory(self, name: str, *args: object) -> Callable[[], Action]:
+        """Return the action ``name`` with its arguments; ParameterError if unknown."""
+        step = self._steps.get(name)
+        if step is None:
+            raise ParameterError(f'unknown action {quote(name)}')
+        return lambda: step(*args)
+
+    def _flag(self, name: str, fallback: bool) -> bool:
+        return self._reading().flags.get(name, fallback)
+
+    def _wait_for(self, condition: Callable[[], bool],
+                  timeout: float) -> Generator[None, None, bool]:
+        deadline = self._clock() + timeout
+        while True:
+            yield
+            if condition():
+                return True
+            if self._clock() > deadline:
+                return False
+
+    def enable(self) -> Action:
+        reading = self._reading()
+        if reading.fault.active:
+            fault = reading.fault
+            return ActionResult(False, f'drive has fault {fault.display} ({fault.name}): '
+                                'call ~/reset_fault first')
+        if reading.unsafe:
+            return ActionResult(False, f'not enabled: {reading.unsafe}')
+        intent = self.intent
+        intent.enabled, intent.stopped, intent.idle_action = True, False, 'stop'
+        ok = yield from self._wait_for(lambda: self._flag('ready', True) or
+                                       self._flag('running', False), self.action_timeout)
+        if not ok:
+            intent.enabled = False
+            return ActionResult(False, 'drive did not report ready: not enabled')
+        if not self._commands_fresh():
+            return ActionResult(True, 'enabled: the drive is ready and runs as soon as '
+                                'velocity commands arrive')
+        ok = yield from self._wait_for(lambda: self._flag('running', True), self.action_timeout)
+        if not ok:
+            return ActionResult(False, 'enabled, but the drive does not report running')
+        return ActionResult(True, 'enabled and running')
+
+    def _stopping(self, idle_action: str, what: str) -> Action:
+        self.intent.idle_action = idle_action
+        self.reassert_idle = True      # written again now, whatever was sent before
+        ok = yield from self._wait_for(lambda: not self._flag('running', False),
+                                       self.stop_timeout)
+        if not ok:
+            return ActionResult(False, f'{what} commanded, but the drive still reports running '
+                                f'after {self.stop_timeout:g} s')
+        return ActionResult(True, f'{what}: the drive reports not running')
+
+    def disable(self) -> Action:
+        self.intent.enabled = False
+        values = self.drive.profile.control.values
+        return (yield from self._stopping('disable' if 'disable' in values else 'stop',
+                                          'disabled'))
+
+    def stop(self) -> Action:
+        self.intent.stopped = True
+        return (yield from self._stopping('stop', 'stopped (call ~/enable to resume)'))
+
+    def reset_fault(self) -> Action:
+        reading = self._reading()
+        if not reading.fault.active:
+            self.intent.fault_latched = False
+            return ActionResult(True, 'no fault active')
+        before = reading.fault
+        self.drive.send_command('fault_reset')
+        ok = yield from self._wait_for(lambda: not self._reading().fault.active,
+                                       self.action_timeout)
+        if not ok:
+            now = self._reading().fault
+            return ActionResult(False, f'fault still active after reset: {now.display} '
+                                f'{now.name}. Remedy: {now.remedy}')
+        self.intent.fault_latched = False
+        return ActionResult(True, f'fault {before.display} ({before.name}) cleared')
+
+    def get_parameter(self, key: str) -> Action:
+        value = self.drive.get_parameter(key)
+        return ActionResult(True, value.parameter.description, value)
+        yield  # pragma: no cover - makes this a generator
+
+    def set_parameter(self, key: str, value: float, persistent: bool) -> Action:
+        self._check_write(key, value)
+        running = self._flag('running', False)
+        written, note = self.drive.set_parameter(key, value, persistent, running)
+        parameter = written.parameter
+        message = f'{parameter.code} = {written.value:g}{parameter.unit}'
+        return ActionResult(True, f'{message} ({note})' if note else message, written)
+        yield  # pragma: no cover - makes this a generator

@@ -1,0 +1,478 @@
+"""The control of one drive: command, poll, supervise the link, publish a snapshot.
+
+Commands arrive from any thread (``command_velocity``, ``submit``); only the
+loop thread touches the transport (``step``, or a bus's loop calling the two
+phases). Each cycle writes the command first, then polls status, then advances
+at most one pending service action one step (``actions``).
+
+Safety rules kept here, in one place:
+- start-up and every reconnect write a zero setpoint and the idle command
+  before anything else, and forget all earlier velocity commands;
+- the drive runs only while the one rule in ``permit`` says so (enabled, not
+  stopped, fault-free, online, run and fault state readable, fresh commands);
+  it decides both what is written and what is reported;
+- after a fault motion resumes only after a successful ``reset_fault``; the one
+  exception is the drive's own comm-loss fault found at connect, which the
+  host's absence caused: it is reset once, after the stop is written;
+- a drive that reports running while the host has it idle gets the idle command
+  again every cycle (counted as an unexpected start), whatever was sent last;
+- the drive's own comm-loss timeout is sized for the bus it is on
+  (``plan_host_loss``), and reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Callable
+
+from ..drives import Drive, HostLossProtection, Reading
+from ..errors import ParameterError, ProtocolException, TransportError, VfdError, quote
+from .actions import ActionQueue, ServiceActions
+from .link import LinkSupervisor
+from .loop import CycleLoop
+from .permit import Conditions, Intent, decide
+from .state import ActionResult, CommandOutcome, DriveState, RunState
+from .watchdog import CommandWatchdog
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    command_timeout: float = 0.5      # s without a valid command -> stop
+    max_velocity: float = 10.0        # rad/s at the output shaft; commands are clamped
+    cycle_period: float = 0.02        # s per control cycle
+    comm_loss_threshold: int = 2      # consecutive failed cycles -> offline
+    reconnect_period: float = 0.5     # s between reconnect attempts
+    drive_comm_timeout: float = 0.3   # s requested for the drive's own watchdog; 0 = off
+    apply_commissioning: bool = True  # write the profile's bus-control settings
+    auto_enable: bool = False         # enable at start-up (still needs fresh commands)
+    action_timeout: float = 2.0       # s to verify enable / reset
+    stop_timeout: float = 10.0        # s to verify stop / disable (deceleration)
+    at_speed_tolerance: float = 0.1   # rad/s
+
+    def __post_init__(self) -> None:
+        for name in ('command_timeout', 'cycle_period', 'reconnect_period', 'action_timeout',
+                     'stop_timeout'):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ParameterError(f'{name} must be > 0, got {value}')
+        if not (math.isfinite(self.max_velocity) and self.max_velocity > 0):
+            raise ParameterError(f'max_velocity must be > 0, got {self.max_velocity}')
+        if not (math.isfinite(self.drive_comm_timeout) and self.drive_comm_timeout >= 0):
+            raise ParameterError(f'drive_comm_timeout must be >= 0, got {self.drive_comm_timeout}')
+        if self.comm_loss_threshold < 1:
+            raise ParameterError('comm_loss_threshold must be >= 1')
+
+
+class DriveController:
+    """Runs one drive: connect, command, poll, watchdog, service actions."""
+
+    def __init__(self, drive: Drive, config: ControllerConfig,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.drive = drive
+        self.config = config
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._watchdog = CommandWatchdog(config.command_timeout, clock)
+        self._velocity = 0.0
+        self._setpoints: dict[str, int] = {}
+        self._written_setpoints: dict[str, int] = {}
+        self._rejected = 0
+        self._clamped = 0
+        self.intent = Intent(enabled=config.auto_enable)
+        self.link = LinkSupervisor(drive.hardware_id, config.comm_loss_threshold,
+                                   config.reconnect_period, clock)
+        self._cycle = 0
+        self._reading = Reading()
+        self._settings_refused: tuple[str, ...] = ()
+        self._actions = ActionQueue(drive.hardware_id)
+        self.services = ServiceActions(
+            drive, self.intent, lambda: self._reading, self._commands_fresh,
+            self.check_parameter_write, config.action_timeout, config.stop_timeout, clock)
+        self._loop: CycleLoop | None = None
+        self._stopped_loop_errors = 0
+        self._cycle_ok = False
+        self._command_pending = False
+        self._run_written = False        # what the last command write asked: run or idle
+        self._last_running = False
+        self._unexpected_starts = 0
+        self._check_comm_fault = False   # the first reading after a connect is not read yet
+        self._comm_fault_grace_until = -math.inf
+        self._comm_faults_cleared = 0
+        self.protection = self.plan_host_loss(0.0)
+        #: asks the loop running this controller (its own, or a bus's) to write a
+        #: new command before the next cycle
+        self.request_preempt: Callable[[], None] | None = None
+        #: run before each status read instead of this drive's own ``preempt``
+        #: (a bus writes every drive's new command first)
+        self.preempt_hook: Callable[[], None] | None = None
+        self._state = DriveState(hardware_id=drive.hardware_id, protection=self.protection)
+
+    # --- sizing -------------------------------------------------------------------
+
+    def addressing_interval(self) -> float:
+        """Worst-case time between two requests to this drive when it runs alone on its link."""
+        return max(self.config.cycle_period, self.drive.cycle_seconds()) + \
+            self.drive.action_seconds()
+
+    def plan_host_loss(self, interval: float | None = None) -> HostLossProtection:
+        """Size the drive's own comm-loss protection for ``interval`` (default: alone).
+
+        Raises ParameterError when no valid setting fits (the node refuses to
+        start with the reason); the plan is written at every connect.
+        """
+        if interval is None:
+            interval = self.addressing_interval()
+        self.protection = self.drive.host_loss_plan(self.config.drive_comm_timeout, interval)
+        self.link.retry_period = self._reconnect_delay()
+        return self.protection
+
+    # --- thread-safe API ------------------------------------------------------
+
+    @property
+    def state(self) -> DriveState:
+        with self._lock:
+            return self._state
+
+    def command_velocity(self, velocity: float) -> CommandOutcome:
+        """Accept an output-shaft velocity (rad/s). NaN/inf never feed the watchdog."""
+        if not math.isfinite(velocity):
+            with self._lock:
+                self._rejected += 1
+            return CommandOutcome.REJECTED
+        limit = self.config.max_velocity
+        clamped = min(max(velocity, -limit), limit)
+        with self._lock:
+            # A new value, or the first command after a watchdog stop, preempts the
+            # cycle; a repeated one waits for it.
+            urgent = clamped != self._velocity or self._watchdog.expired
+            self._velocity = clamped
+            self._watchdog.feed()
+            self._command_pending |= urgent
+            outcome = CommandOutcome.ACCEPTED
+            if clamped != velocity:
+                self._clamped += 1
+                outcome = CommandOutcome.CLAMPED
+        if urgent and self.request_preempt is not None:
+            self.request_preempt()
+        return outcome
+
+    def command_setpoint(self, topic: str, value: float) -> None:
+        """Accept an auxiliary setpoint (profile ``setpoints``); ParameterError if invalid.
+
+        Validated here, written by the loop when it changes (RAM write).
+        """
+        code = self.drive.profile.setpoints.get(topic)
+        if code is None:
+            raise ParameterError(f'{quote(topic)} is not a setpoint of this drive')
+        parameter = self.drive.profile.parameter(code)
+        raw = parameter.to_raw(value)
+        with self._lock:
+            self._setpoints[code] = raw
+
+    def parameter_writable(self, key: str) -> bool:
+        """Return whether the parameter services would write this parameter at all."""
+        profile = self.drive.profile
+        parameter = profile.parameter(key)
+        managed = self.config.apply_commissioning and any(
+            item.code == parameter.code for item in profile.commissioning)
+        return parameter.writable and parameter.code not in profile.control_owned and \
+            not managed
+
+    def check_parameter_write(self, key: str, value: float) -> None:
+        """Refuse a parameter write that must not reach the loop (ParameterError says why).
+
+        Unknown names, control-owned registers, commissioning values the driver
+        manages, read-only parameters and bad values are refused here, before
+        anything is queued; whether the drive is running is checked again when
+        the write is done.
+        """
+        profile = self.drive.profile
+        parameter = profile.parameter(key)
+        if self.config.apply_commissioning:
+            for item in profile.commissioning:
+                if item.code == parameter.code:
+                    raise ParameterError(
+                        f'{parameter.code} is set to {item.value:g} at every connect '
+                        f'({item.why}): set apply_commissioning false to manage it yourself')
+        self.drive.check_write(key, value, running=False)
+
+    def submit(self, name: str, *args: object) -> Future:
+        """Queue a service action; the Future resolves to an ActionResult."""
+        try:
+            factory = self.services.factory(name, *args)
+        except ParameterError as exc:
+            future: Future = Future()
+            future.set_result(ActionResult(False, str(exc)))
+            return future
+        return self._actions.submit(None if args else name, factory)
+
+    def start(self) -> None:
+        """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
+        if self._loop is None:
+            self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
+                                   self.step, self.finish, self._clock, preempt=self.preempt)
+            self.request_preempt = self._loop.request_preempt
+            self._loop.start()
+
+    def shutdown(self, timeout: float = 2.0) -> None:
+        """Stop the loop; the drive is commanded to stop before the link closes."""
+        if self._loop is not None:
+            self._loop.stop(timeout)
+            self._stopped_loop_errors += self._loop.errors
+            self._loop = None
+
+    # --- one cycle, in two phases (a bus writes every drive's command first) -----
+
+    @property
+    def connect_due(self) -> bool:
+        return self.link.connect_due
+
+    def step(self) -> None:
+        self.command_phase()
+        self.poll_phase()
+
+    def command_phase(self, connect_allowed: bool = True) -> None:
+        """Connect when due (and allowed: a bus connects one drive per cycle), then command."""
+        self._cycle_ok = False
+        self.link.new_cycle()
+        if connect_allowed and self.link.connect_due:
+            self._connect()
+        if not self.link.online:
+            return
+        try:
+            self._write_command()
+            self._write_setpoints()
+            self._cycle_ok = True
+        except TransportError as exc:
+            self._link_failed(exc)
+        except ProtocolException as exc:
+            # The drive answered but refused the command: it is there, not offline.
+            self.link.error = str(exc)
+            self._cycle_ok = True
+
+    def preempt(self) -> None:
+        """Write a new velocity command now, between polls (commands preempt polls)."""
+        if not (self.link.online and self._command_pending):
+            return
+        try:
+            self._write_command()
+        except TransportError as exc:
+            self._link_failed(exc)
+        except ProtocolException as exc:
+            self.link.error = str(exc)
+
+    def poll_phase(self) -> None:
+        """Read the status, latch faults, advance a service action, publish the state."""
+        if self.link.online and self._cycle_ok:
+            try:
+                self._reading = self.drive.poll(self._cycle, preempt=self._preempt_reads)
+                self._cycle += 1
+                self._check_fault()
+                self._check_unexpected_motion()
+                self._actions.advance()
+                self.link.cycle_ok()
+            except TransportError as exc:
+                self._link_failed(exc)
+        if not self.link.online:
+            self._actions.fail_all(f'drive offline: {self.link.error or "not connected"}')
+        self._publish_state()
+
+    def finish(self) -> None:
+        """End of the loop: command the drive to stop, then close the link."""
+        if self.link.online:
+            try:
+                # Whatever the driver believes the drive is doing: write the stop.
+                self.drive.forget_state()
+                self.drive.apply(0.0, run=False, idle_action='stop')
+            except VfdError as exc:
+                log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
+        self.drive.close()
+        self.link.closed()
+        self._actions.fail_all('the driver is shutting down')
+
+    # --- internals -----------------------------------------------------------------
+
+    def _commands_fresh(self) -> bool:
+        with self._lock:
+            return not self._watchdog.expired
+
+    def _conditions(self) -> Conditions:
+        with self._lock:
+            expired, age = self._watchdog.expired, self._watchdog.age
+        return Conditions(online=self.link.online, link_error=self.link.error,
+                          fault=self._reading.fault, unsafe=self._reading.unsafe,
+                          watchdog_expired=expired, watchdog_age=age,
+                          command_timeout=self.config.command_timeout)
+
+    def _write_command(self) -> None:
+        with self._lock:
+            velocity = self._velocity
+            self._command_pending = False
+        run = decide(self.intent, self._conditions())[0] is RunState.RUNNING
+        reassert, self.services.reassert_idle = self.services.reassert_idle and not run, False
+        self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
+        self._run_written = run
+
+    def _write_setpoints(self) -> None:
+        with self._lock:
+            pending = {code: raw for code, raw in self._setpoints.items()
+                       if self._written_setpoints.get(code) != raw}
+        for code, raw in pending.items():
+            self.drive.write_setpoint_parameter(code, raw)
+            self._written_setpoints[code] = raw
+
+    def _preempt_reads(self) -> None:
+        if self.preempt_hook is not None:
+            self.preempt_hook()
+        else:
+            self.preempt()
+
+    def _connect(self) -> None:
+        drive = self.drive
+        try:
+            drive.forget_state()
+            drive.open()
+            # Start-up never moves the motor: zero setpoint and idle first.
+            drive.apply(0.0, run=False, idle_action=self.intent.idle_action)
+            self._run_written = False
+            problems = drive.configure(self.protection, self.config.apply_commissioning)
+        except VfdError as exc:
+            drive.close()
+            self.link.connect_failed(exc)
+            return
+        for problem in problems:
+            # A setting the drive refuses must not keep it offline: report and go on.
+            log.error('%s: not applied at connect: %s', drive.hardware_id, problem)
+        if self.link.first_connect and self.protection.weaker_than_requested:
+            log.warning('%s: drive-side host-loss protection %s (drive_comm_timeout %g s '
+                        'requested)', drive.hardware_id, self.protection.describe(),
+                        self.config.drive_comm_timeout)
+        self._settings_refused = tuple(problems)
+        self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
+        with self._lock:
+            self._watchdog.reset()   # never resume from a command older than the link
+        self._last_running = False
+        self._check_comm_fault = True
+        self.link.connected()
+
+    def _reconnect_delay(self) -> float:
+        """Keep a drive with a comm-loss timeout addressed within it while reconnecting.
+
+        A short glitch then never lets the drive's own timer expire; a drive that
+        is really gone costs its link one failed exchange per attempt.
+        """
+        delay = self.config.reconnect_period
+        if self.protection.active:
+            delay = min(delay, self.protection.timeout / 3)
+        return delay
+
+    def _link_failed(self, exc: VfdError) -> None:
+        if self.link.cycle_failed(exc):
+            self._reading = Reading()
+            self.drive.close()
+
+    def _check_fault(self) -> None:
+        fault = self._reading.fault
+        first_after_connect, self._check_comm_fault = self._check_comm_fault, False
+        if not fault.active or self.intent.fault_latched:
+            return
+        spec = self.drive.profile.comm_timeout
+        own_absence = spec is not None and (fault.code, fault.subcode) == \
+            (spec.fault_code, spec.fault_subcode)
+        if own_absence and first_after_connect:
+            # The drive stopped itself because this host was silent (a restart, an
+            # unplugged cable): the stop is written, so the fault is reset once.
+            self._comm_fault_grace_until = self._clock() + self.config.action_timeout
+            self._comm_faults_cleared += 1
+            log.warning('%s: reset %s %s found at connect: the drive stopped itself because '
+                        'the host was silent', self.drive.hardware_id, fault.display, fault.name)
+            self.drive.send_command('fault_reset')
+            return
+        if own_absence and self._clock() < self._comm_fault_grace_until:
+            return       # the reset sent at connect is still taking effect
+        self.intent.fault_latched = True
+        log.warning('%s fault %s %s', self.drive.hardware_id, fault.display, fault.name)
+
+    def _check_unexpected_motion(self) -> None:
+        running = self._reading.flags.get('running', False)
+        if running and not self._run_written:
+            # Whatever was written last, the drive runs although the host has it
+            # idle (a start from elsewhere, or a lost stop): write the idle command again.
+            self.services.reassert_idle = True
+            if not self._last_running:
+                self._unexpected_starts += 1
+                log.warning('%s reports running although the host has it %s: idle command '
+                            'written again', self.drive.hardware_id,
+                            decide(self.intent, self._conditions())[0].label)
+        self._last_running = running
+
+    # --- snapshot ---------------------------------------------------------------
+
+    @property
+    def loop_errors(self) -> int:
+        loop = self._loop
+        return self._actions.errors + self._stopped_loop_errors + \
+            (loop.errors if loop is not None else 0)
+
+    def _publish_state(self) -> None:
+        reading = self._reading
+        stats = self.drive.stats
+        conditions = self._conditions()
+        with self._lock:
+            rejected, clamped = self._rejected, self._clamped
+        run_state, reason = decide(self.intent, conditions)
+        commanded = self._velocity if run_state is RunState.RUNNING else 0.0
+        if run_state is RunState.RUNNING and reading.stuck:
+            # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).
+            run_state, reason = RunState.BLOCKED, reading.stuck
+        flags = reading.flags
+        measured = reading.measured_velocity
+        running = flags.get('running', False)
+        at_speed = flags.get('at_speed', running and math.isfinite(measured) and
+                             abs(measured - commanded) <= self.config.at_speed_tolerance)
+        snapshot = DriveState(
+            hardware_id=self.drive.hardware_id,
+            online=self.link.online,
+            ready=flags.get('ready', False),
+            enabled=self.intent.enabled and not self.intent.stopped,
+            running=running,
+            reverse=flags.get('reverse', False),
+            fault=reading.fault.active,
+            warning=flags.get('warning', reading.warning_code != 0),
+            at_speed=at_speed,
+            watchdog_tripped=run_state is RunState.WATCHDOG,
+            run_state=run_state,
+            stop_reason=reason,
+            status_words=tuple(reading.raw_words.items()),
+            commanded_velocity=commanded,
+            measured_velocity=measured,
+            setpoint_raw=self.drive.last_setpoint_raw,
+            measured=dict(reading.values),
+            active_fault=reading.fault,
+            warning_code=reading.warning_code,
+            warning_subcode=reading.warning_subcode,
+            transactions=stats.transactions,
+            comm_errors=stats.errors,
+            timeouts=stats.timeouts,
+            bad_frames=stats.bad_frames,
+            exceptions=stats.exceptions,
+            reconnects=self.link.reconnects,
+            late_replies=stats.late_replies,
+            rejected_commands=rejected,
+            clamped_commands=clamped,
+            unexpected_starts=self._unexpected_starts,
+            comm_faults_cleared=self._comm_faults_cleared,
+            loop_errors=self.loop_errors,
+            link_error=self.link.error,
+            protection=self.protection,
+            unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
+        )
+        with self._lock:
+            self._state = snapshot

@@ -1,0 +1,75 @@
+"""The thread that runs a control cycle at a fixed period, and lets commands preempt it."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Callable
+
+log = logging.getLogger(__name__)
+
+
+class CycleLoop:
+    """Calls ``step`` every ``period`` seconds in its own thread, then ``finish``.
+
+    Between cycles, ``request_preempt()`` (e.g. a new velocity command) runs
+    ``preempt`` at once instead of waiting for the next period: commands preempt
+    polls without raising the poll rate. An exception in a step is logged and
+    counted (``errors``: each one is a bug) and the loop goes on: nothing may
+    stop the thread that keeps a traction drive under control. An overrun
+    restarts the schedule instead of bursting to catch up.
+    """
+
+    def __init__(self, name: str, period: float, step: Callable[[], None],
+                 finish: Callable[[], None], clock: Callable[[], float] = time.monotonic,
+                 preempt: Callable[[], None] | None = None) -> None:
+        self.name = name
+        self.period = period
+        self._step = step
+        self._finish = finish
+        self._preempt = preempt
+        self._clock = clock
+        self._stop = threading.Event()
+        self._preempt_requested = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self.overruns = 0
+        self.errors = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def request_preempt(self) -> None:
+        """Run ``preempt`` now (thread-safe; a no-op without ``preempt``)."""
+        if self._preempt is not None:
+            self._preempt_requested.set()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        self._preempt_requested.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _guarded(self, call: Callable[[], None]) -> None:
+        try:
+            call()
+        except Exception as exc:  # noqa: BLE001 - the loop must survive anything
+            self.errors += 1
+            log.exception('%s: loop error: %s', self.name, exc)
+
+    def _run(self) -> None:
+        next_cycle = self._clock()
+        while not self._stop.is_set():
+            self._guarded(self._step)
+            next_cycle += self.period
+            if next_cycle - self._clock() < -self.period:
+                self.overruns += 1
+                next_cycle = self._clock()
+            while not self._stop.is_set():
+                delay = next_cycle - self._clock()
+                if delay <= 0 or not self._preempt_requested.wait(delay):
+                    break
+                self._preempt_requested.clear()
+                if self._preempt is not None and not self._stop.is_set():
+                    self._guarded(self._preempt)
+        self._guarded(self._finish)

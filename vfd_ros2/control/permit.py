@@ -1,0 +1,60 @@
+"""The one rule that decides whether a drive may move, and if not, why.
+
+It decides both what the loop writes (run or idle) and what ``~/status``
+reports (``run_state``, ``stop_reason``), so the two can never disagree. The
+order is the order of what an operator must do first: a drive that is offline
+and faulted is reported offline.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..profiles import FaultInfo
+from .state import RunState
+
+
+@dataclass
+class Intent:
+    """What the host wants of the drive: changed by services, read by the loop."""
+
+    enabled: bool = False
+    stopped: bool = False           # ~/stop latches until ~/enable
+    idle_action: str = 'stop'       # what "not running" writes: stop, disable, quick_stop
+    fault_latched: bool = False     # a fault was seen; only ~/reset_fault clears it
+
+
+@dataclass(frozen=True)
+class Conditions:
+    """Everything the rule looks at, taken at one moment."""
+
+    online: bool
+    link_error: str
+    fault: FaultInfo
+    unsafe: str                      # the drive layer's reason it must not run ('' = none)
+    watchdog_expired: bool
+    watchdog_age: float
+    command_timeout: float
+
+
+def decide(intent: Intent, now: Conditions) -> tuple[RunState, str]:
+    """Return RUNNING and '', or the first state that holds the drive idle and why."""
+    if not now.online:
+        return RunState.OFFLINE, f'no valid reply from the drive: {now.link_error}'
+    if now.fault.active or intent.fault_latched:
+        fault = now.fault
+        text = f'fault {fault.display} {fault.name}' if fault.active else 'fault (cleared)'
+        return RunState.FAULT, f'{text}: call ~/reset_fault'
+    if not intent.enabled:
+        return RunState.DISABLED, 'disabled: call ~/enable'
+    if intent.stopped:
+        return RunState.STOPPED, 'stopped by ~/stop: call ~/enable to resume'
+    if now.unsafe:
+        return RunState.BLOCKED, now.unsafe
+    if now.watchdog_expired:
+        age = 'none received' if math.isinf(now.watchdog_age) else \
+            f'last {now.watchdog_age:.2f} s ago'
+        return RunState.WATCHDOG, (f'no velocity command within command_timeout '
+                                   f'{now.command_timeout:g} s ({age})')
+    return RunState.RUNNING, ''

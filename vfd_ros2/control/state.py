@@ -1,0 +1,85 @@
+"""What the control loop reports: the run state, a consistent snapshot, action results."""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+
+from ..drives import HostLossProtection, ParameterValue
+from ..profiles import NO_FAULT, FaultInfo
+
+
+class RunState(enum.IntEnum):
+    """Why the drive does or does not follow velocity commands (DriveStatus.RUN_STATE_*)."""
+
+    OFFLINE = 0
+    FAULT = 1
+    DISABLED = 2
+    STOPPED = 3
+    BLOCKED = 4
+    WATCHDOG = 5
+    RUNNING = 6
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+class CommandOutcome(enum.Enum):
+    ACCEPTED = 'accepted'
+    CLAMPED = 'clamped'
+    REJECTED = 'rejected'
+
+
+@dataclass(frozen=True)
+class ActionResult:
+    success: bool
+    message: str
+    value: ParameterValue | None = None
+
+
+@dataclass(frozen=True)
+class DriveState:
+    """A consistent snapshot of everything the node publishes."""
+
+    hardware_id: str
+    online: bool = False
+    ready: bool = False
+    enabled: bool = False
+    running: bool = False
+    reverse: bool = False
+    fault: bool = False
+    warning: bool = False
+    at_speed: bool = False
+    watchdog_tripped: bool = False
+    run_state: RunState = RunState.OFFLINE
+    stop_reason: str = 'not connected yet'
+    status_words: tuple[tuple[str, int], ...] = ()
+    commanded_velocity: float = 0.0
+    measured_velocity: float = math.nan
+    setpoint_raw: int = 0
+    measured: dict[str, float] = field(default_factory=dict)
+    active_fault: FaultInfo = NO_FAULT
+    warning_code: int = 0
+    warning_subcode: int = 0
+    transactions: int = 0
+    comm_errors: int = 0
+    timeouts: int = 0
+    bad_frames: int = 0
+    exceptions: int = 0
+    reconnects: int = 0
+    late_replies: int = 0
+    rejected_commands: int = 0
+    clamped_commands: int = 0
+    unexpected_starts: int = 0      # the drive started although the host had it idle
+    comm_faults_cleared: int = 0    # comm-loss faults of the driver's absence reset at connect
+    loop_errors: int = 0            # exceptions inside the loop: each one is a bug
+    link_error: str = ''            # why the link failed last ('' while healthy)
+    protection: HostLossProtection = HostLossProtection()
+    unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
+
+    @property
+    def state(self) -> str:
+        """The run state as one lower-case word (DriveStatus.state)."""
+        return self.run_state.label

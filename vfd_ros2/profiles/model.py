@@ -1,0 +1,434 @@
+"""A drive family as frozen dataclasses (built by ``loader`` from the YAML data).
+
+Everything the driver and the simulated twins need to know about a drive family:
+the parameter (register / object) table with scaling, ranges and access; which
+registers carry the command, setpoint, status and measured values; the command
+values; the fault and exception tables with the manual's words; the Modbus and
+CANopen limits. A new family is a new data file, never a new ``if`` in the code.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+from ..errors import ParameterError, quote
+from ..protocol.scaling import SpeedUnit
+from ..protocol.values import ValueType, WordOrder
+
+__all__ = [
+    'Access', 'CanObject', 'CanopenSpec', 'CommTimeoutSpec', 'CommissioningWrite', 'ControlSpec',
+    'ControlStyle', 'DirectionMode', 'EmcyFault', 'FaultEntry', 'FaultSpec', 'FlagRule',
+    'FlagRuleKind', 'ModbusSpec', 'ObjectSet', 'Parameter', 'Persistence', 'PersistenceKind',
+    'Profile', 'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction', 'ValueType',
+    'VelocitySpec', 'WordOrder',
+]
+
+class Access(str, enum.Enum):
+    """Who may write a parameter, and when."""
+
+    READ_ONLY = 'ro'
+    READ_WRITE = 'rw'
+    WRITE_WHEN_STOPPED = 'rw_stopped'
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One entry of the drive's parameter table (a register or register pair)."""
+
+    code: str
+    address: int
+    description: str
+    type: ValueType = ValueType.UINT16
+    scale: float = 1.0
+    unit: str = ''
+    minimum: float | None = None
+    maximum: float | None = None
+    default: float | None = None
+    access: Access = Access.READ_WRITE
+    options: Mapping[int, str] = field(default_factory=dict)
+    name: str = ''
+    word_order: WordOrder = WordOrder.HIGH_FIRST
+    source: str = ''
+    note: str = ''
+    # CANopen object dictionary entry of the same value (None: not reachable over CANopen).
+    index: int | None = None
+    subindex: int = 0
+
+    @property
+    def register_count(self) -> int:
+        return self.type.register_count
+
+    @property
+    def writable(self) -> bool:
+        return self.access is not Access.READ_ONLY
+
+    def from_raw(self, raw: int) -> float:
+        """Engineering value of a raw (already sign-decoded) integer."""
+        return raw * self.scale
+
+    def to_raw(self, value: float) -> int:
+        """Validate an engineering value and return the raw integer to write.
+
+        Raises ParameterError (and nothing is written) when the value is not
+        finite, outside the manual's range, not a multiple of the resolution, not
+        one of the enumerated options, or does not fit the register type.
+        """
+        if not math.isfinite(value):
+            raise ParameterError(f'{self.code}: value {value} is not a finite number')
+        if self.minimum is not None and value < self.minimum - abs(self.scale) * 1e-6:
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is below the minimum {self.minimum:g}'
+                f'{self.unit}')
+        if self.maximum is not None and value > self.maximum + abs(self.scale) * 1e-6:
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is above the maximum {self.maximum:g}'
+                f'{self.unit}')
+        raw_float = value / self.scale
+        low, high = self.type.bounds
+        if not math.isfinite(raw_float) or not low - 1 <= raw_float <= high + 1:
+            # Checked before rounding: 1e308 / 0.1 is inf, which round() cannot take.
+            raise ParameterError(
+                f'{self.code}: {value:g}{self.unit} is outside what the register can hold '
+                f'({low * self.scale:g}..{high * self.scale:g}{self.unit})')
+        raw = round(raw_float)
+        if abs(raw_float - raw) > 1e-6 * max(1.0, abs(raw_float)):
+            raise ParameterError(
+                f'{self.code}: {value} is not a multiple of the resolution {self.scale:g}'
+                f'{self.unit}')
+        if self.options and raw not in self.options:
+            allowed = ', '.join(f'{k} ({v})' for k, v in sorted(self.options.items()))
+            raise ParameterError(f'{self.code}: {raw} is not one of the options: {allowed}')
+        if not low <= raw <= high:
+            raise ParameterError(
+                f'{self.code}: raw value {raw} does not fit {self.type.value}')
+        return raw
+
+    def option_text(self, raw: int) -> str:
+        return self.options.get(raw, '')
+
+
+@dataclass(frozen=True)
+class SerialDefaults:
+    """The drive's factory serial settings (used as transport defaults)."""
+
+    baudrate: int = 19200
+    parity: str = 'N'
+    stopbits: int = 1
+    bytesize: int = 8
+
+
+class PersistenceKind(str, enum.Enum):
+    """How a drive tells RAM-only writes from EEPROM writes."""
+
+    NONE = 'none'                      # every write goes where the drive decides
+    SWITCH_PARAMETER = 'switch_parameter'  # a parameter selects it for all writes
+    ADDRESS_OFFSET = 'address_offset'  # EEPROM address = RAM address + offset
+    ADDRESS_FLAG = 'address_flag'      # RAM-only address = address | flag
+
+
+@dataclass(frozen=True)
+class Persistence:
+    kind: PersistenceKind = PersistenceKind.NONE
+    parameter: str = ''
+    volatile_value: int = 0
+    persistent_value: int = 0
+    offset: int = 0
+    flag: int = 0
+    # Address ranges [low, high] the RAM/EEPROM choice applies to (empty = all);
+    # other registers (process values) take plain writes only.
+    applies_to: tuple[tuple[int, int], ...] = ()
+    note: str = ''
+
+    def covers(self, address: int) -> bool:
+        return not self.applies_to or any(low <= address <= high
+                                          for low, high in self.applies_to)
+
+
+@dataclass(frozen=True)
+class ModbusSpec:
+    """Modbus limits and conventions of the drive family."""
+
+    function_codes: frozenset[int] = frozenset({3, 6, 16})
+    max_read_registers: int = 125
+    max_write_registers: int = 123
+    gaps_readable: bool = False
+    serial: SerialDefaults = SerialDefaults()
+    # Exception code on the wire -> its meaning in this drive's manual.
+    exception_codes: Mapping[int, str] = field(default_factory=dict)
+    # What the drive answers in each situation (used by the simulated twin).
+    exception_for: Mapping[str, int] = field(default_factory=dict)
+    persistence: Persistence = Persistence()
+
+
+class DirectionMode(str, enum.Enum):
+    """How the drive is told the direction of rotation."""
+
+    SETPOINT_SIGN = 'setpoint_sign'   # signed setpoint, one run command
+    COMMAND = 'command'               # unsigned setpoint, run_forward / run_reverse
+
+
+@dataclass(frozen=True)
+class VelocitySpec:
+    setpoint: str
+    setpoint_unit: SpeedUnit
+    feedback_unit: SpeedUnit
+    direction: DirectionMode = DirectionMode.SETPOINT_SIGN
+    rated_speed: str = ''      # parameter codes for the motor nameplate defaults
+    pole_pairs: str = ''
+    acceleration_time: str = ''
+    deceleration_time: str = ''
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class ControlSpec:
+    """The command register and the value written for each action."""
+
+    command: str
+    values: Mapping[str, int]
+    # Written just before a run command when the drive starts on a rising edge.
+    run_edge_from: int | None = None
+    note: str = ''
+
+    def action_of(self, value: int) -> str | None:
+        for action, action_value in self.values.items():
+            if action_value == value:
+                return action
+        return None
+
+
+@dataclass(frozen=True)
+class Signal:
+    """A value polled from the drive, by role name (e.g. 'motor_speed')."""
+
+    role: str
+    code: str
+    bits: tuple[int, int] | None = None
+    every: int = 1
+
+    def extract(self, raw: int) -> int:
+        if self.bits is None:
+            return raw
+        low, high = self.bits
+        return (raw >> low) & ((1 << (high - low + 1)) - 1)
+
+
+class FlagRuleKind(str, enum.Enum):
+    NONZERO = 'nonzero'
+    ZERO = 'zero'
+    NEGATIVE = 'negative'
+    BIT = 'bit'
+    EQUALS = 'equals'
+
+
+@dataclass(frozen=True)
+class FlagRule:
+    """How a decoded status flag follows from a polled signal."""
+
+    signal: str
+    rule: FlagRuleKind
+    bit: int = 0
+    values: tuple[int, ...] = ()
+
+    def evaluate(self, value: float) -> bool:
+        if self.rule is FlagRuleKind.NONZERO:
+            return value != 0
+        if self.rule is FlagRuleKind.ZERO:
+            return value == 0
+        if self.rule is FlagRuleKind.NEGATIVE:
+            return value < 0
+        if self.rule is FlagRuleKind.BIT:
+            return bool(int(value) >> self.bit & 1)
+        return int(value) in self.values
+
+
+@dataclass(frozen=True)
+class FaultEntry:
+    code: int
+    name: str
+    remedy: str
+    cause: str = ''
+    subcodes: Mapping[int, str] = field(default_factory=dict)
+    confidence: str = 'high'
+    source: str = ''
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    code: str                  # parameter codes of the fault registers
+    subcode: str = ''
+    warning_code: str = ''
+    warning_subcode: str = ''
+    display_format: str = 'E{code}'
+    table: Mapping[int, FaultEntry] = field(default_factory=dict)
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class CommTimeoutSpec:
+    """The drive's own comm-loss watchdog (written at connect)."""
+
+    parameter: str
+    fault_code: int
+    fault_subcode: int = 0
+    note: str = ''
+
+
+@dataclass(frozen=True)
+class CommissioningWrite:
+    """A parameter that must hold a value for the drive to obey the bus."""
+
+    code: str
+    value: float
+    why: str = ''
+
+
+class ControlStyle(str, enum.Enum):
+    """How a CANopen drive is commanded."""
+
+    CIA402 = 'cia402'              # CiA 402 state machine on a control/status word pair
+    COMMAND_WORD = 'command_word'  # a manufacturer command word (values as in `control`)
+
+
+class StopAction(str, enum.Enum):
+    """What the CiA 402 `stop` action commands while operation is enabled."""
+
+    DISABLE_OPERATION = 'disable_operation'   # ramp down, stay switched on
+    QUICK_STOP = 'quick_stop'                 # quick-stop ramp (0x605A decides)
+
+
+@dataclass(frozen=True)
+class CanObject:
+    """One CANopen object the driver maps into a PDO or writes at connect."""
+
+    index: int
+    subindex: int = 0
+    type: ValueType = ValueType.UINT16
+    scale: float = 1.0
+    unit: str = ''
+    code: str = ''      # the parameter it was taken from, if any
+
+    @property
+    def mapping(self) -> int:
+        """The 32-bit PDO mapping entry (index, sub-index, length in bits)."""
+        return (self.index << 16) | (self.subindex << 8) | self.type.bits
+
+    def __str__(self) -> str:
+        return f'0x{self.index:04X}:{self.subindex:02X}'
+
+
+@dataclass(frozen=True)
+class ObjectSet:
+    """The objects that carry control and status over CANopen, and how they are used."""
+
+    name: str
+    control: ControlStyle
+    controlword: CanObject
+    statusword: CanObject
+    target_velocity: CanObject
+    velocity_unit: SpeedUnit
+    # role -> object, mapped into the TPDOs in this order (roles as in `monitor`;
+    # `status_word` and `motor_speed` first, they share TPDO1)
+    monitor: Mapping[str, CanObject]
+    # command_word style: the values written for run/stop/disable/fault_reset
+    commands: Mapping[str, int] = field(default_factory=dict)
+    mode_of_operation: CanObject | None = None
+    mode_value: int = 0
+    stop_action: StopAction = StopAction.DISABLE_OPERATION
+    note: str = ''
+
+
+class EmcyFault(str, enum.Enum):
+    """Where an EMCY frame carries the drive's own fault code."""
+
+    ERROR_CODE = 'error_code'       # bytes 0-1, the CiA 301/402 error code
+    MANUFACTURER_BYTE = 'byte3'     # byte 3 (first manufacturer byte), e.g. Kinco E001 = 1
+
+
+@dataclass(frozen=True)
+class CanopenSpec:
+    """CiA 301 limits of the drive family and the object sets it can be driven through."""
+
+    object_set: str
+    object_sets: Mapping[str, ObjectSet]
+    heartbeat_ms: int = 100                 # written to 0x1017 at connect
+    heartbeat_timeout_factor: float = 3.0   # host consumer timeout = factor x producer time
+    rpdos: int = 4
+    tpdos: int = 4
+    transmission_type: int = 255
+    tpdo_event_timer_ms: int = 0            # 0x18xx:05 (0 = send on change only)
+    rpdo_deadline: bool = False             # 0x14xx:05 supervises RPDO reception
+    emcy_fault: EmcyFault = EmcyFault.ERROR_CODE
+    note: str = ''
+
+    def selected(self, name: str = '') -> ObjectSet:
+        key = name or self.object_set
+        if key not in self.object_sets:
+            raise ParameterError(
+                f'unknown CANopen object set {key!r}; available: {", ".join(self.object_sets)}')
+        return self.object_sets[key]
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    vendor: str
+    model: str
+    manual: str
+    transports: tuple[str, ...]
+    parameters: Mapping[str, Parameter]
+    modbus: ModbusSpec
+    velocity: VelocitySpec
+    control: ControlSpec
+    monitor: tuple[Signal, ...]
+    flags: Mapping[str, FlagRule]
+    status_words: tuple[str, ...]
+    faults: FaultSpec
+    comm_timeout: CommTimeoutSpec | None = None
+    commissioning: tuple[CommissioningWrite, ...] = ()
+    # Extra setpoints published as ~/<topic> (Float64, engineering units), e.g.
+    # the pressure and flow commands of a servo-pump drive: topic -> code.
+    setpoints: Mapping[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+    source_file: str = ''
+    canopen: CanopenSpec | None = None
+    # Registers the control loop writes (command word, setpoints, the comm-loss
+    # timeout it manages, CiA 402 objects): code -> what to use instead. The
+    # parameter services refuse them, so nothing moves the motor around the loop.
+    control_owned: Mapping[str, str] = field(default_factory=dict)
+    _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
+    _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
+    _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)
+
+    def parameter(self, key: str) -> Parameter:
+        """Look a parameter up by function code (any case) or readable name."""
+        if key in self.parameters:
+            return self.parameters[key]
+        stripped = key.strip()
+        code = self._by_folded_code.get(stripped.casefold())
+        if code is not None:
+            return self.parameters[code]
+        if stripped in self._by_name:
+            return self.parameters[self._by_name[stripped]]
+        raise ParameterError(
+            f'unknown parameter {quote(key)} for profile {self.name} '
+            '(use a function code such as those in the manual, or a readable name)')
+
+    def parameter_at(self, address: int) -> Parameter | None:
+        code = self._by_address.get(address)
+        return self.parameters[code] if code else None
+
+    def signal(self, role: str) -> Signal | None:
+        for signal in self.monitor:
+            if signal.role == role:
+                return signal
+        return None
+
+    @property
+    def names(self) -> Mapping[str, str]:
+        """Readable name -> function code."""
+        return self._by_name
