@@ -25,3 +25,21 @@ vfd_activate() {
   export LD_LIBRARY_PATH="$VFD_INSTALL/lib:$VFD_VENV/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
   export PYTHONDONTWRITEBYTECODE=1
 }
+
+# A DDS domain of this process tree's own (tests, benchmarks): two runs on one
+# machine must never see each other's nodes. The lock is held by a file
+# descriptor that the exec'd program inherits, until it exits.
+vfd_private_domain() {
+  local lock_dir="${TMPDIR:-/tmp}/vfd_ros2_domains" domain
+  mkdir -p "$lock_dir"
+  for domain in $(seq 100 199); do
+    exec {VFD_DOMAIN_LOCK}>"$lock_dir/$domain.lock"
+    if flock -n "$VFD_DOMAIN_LOCK"; then
+      export ROS_DOMAIN_ID="$domain"
+      return 0
+    fi
+    exec {VFD_DOMAIN_LOCK}>&-
+  done
+  echo "no free ROS_DOMAIN_ID in 100..199 (every one is held by a run)" >&2
+  return 1
+}
