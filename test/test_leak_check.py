@@ -11,7 +11,7 @@ CONFTEST = (Path(__file__).parent / 'conftest.py').read_text(encoding='utf-8')
 
 def test_a_leaked_thread_and_file_fail_the_test(pytester):
     pytester.makeconftest(CONFTEST)
-    pytester.makepyfile(test_inner='''
+    pytester.makepyfile(test_inner="""
 import os
 import threading
 
@@ -41,7 +41,7 @@ def test_cleans_up():
     thread = threading.Thread(target=lambda: None)
     thread.start()
     thread.join()
-''')
+""")
     result = pytester.runpytest_inprocess('-p', 'no:cacheprovider')
     result.assert_outcomes(passed=3, errors=2)
     result.stdout.fnmatch_lines(['*test_leaks_a_thread leaked threads*forgotten*',
