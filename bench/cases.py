@@ -309,7 +309,7 @@ def software_floor(profile_name: str, cycles: int, stack: str,
         finally:
             transport.close()
     return {'profile': profile_name, 'stack': stack, 'level': 'drive (apply+poll)',
-            'transactions': done, 'errors': errors,
+            'cycles': cycles, 'transactions': done, 'errors': errors,
             'transactions_per_s': round(done / elapsed, 1),
             'us_per_transaction': round(1e6 * elapsed / done, 1),
             'cpu_us_per_transaction': round(1e6 * cpu / done, 1)}

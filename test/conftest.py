@@ -12,7 +12,7 @@ if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
         'machine. Run the tests with scripts/test (it sets it), or export it yourself.',
         returncode=4)
 
-pytest_plugins = ['harness']
+pytest_plugins = ['harness', 'plugin_support']
 
 
 def _open_fds() -> set[tuple[str, str]]:

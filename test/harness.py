@@ -150,6 +150,15 @@ class DriveHarness(DriveClient):
         self.executor.add_node(self.tester)
         self._spin = spin_in_background(self.executor, self.context)
 
+    def wait_cycles(self, count: int = 10, timeout: float = 5.0) -> None:
+        """Wait until the drive has answered ``count`` more requests (the loop went on).
+
+        For negative checks ("nothing moved"): a number of control cycles, not a
+        time that a slow machine might not fill.
+        """
+        target = self.sim.requests + count
+        wait_for(lambda: self.sim.requests >= target, timeout, f'{count} more requests')
+
     def frames_after(self, since: float) -> list[bytes]:
         return [frame for stamp, frame in list(self.line.received) if stamp >= since]
 

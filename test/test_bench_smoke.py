@@ -38,8 +38,8 @@ def test_quick_software_floor_writes_json(tmp_path):
         assert row['transactions'] > 0
         assert row['transactions_per_s'] > 0
         assert row['us_per_transaction'] > 0
-        # rate and time per transaction describe the same measurement
-        assert abs(row['transactions_per_s'] * row['us_per_transaction'] / 1e6 - 1.0) < 0.02
+        # Counts add up: every cycle wrote the setpoint and read at least the fast block.
+        assert row['transactions'] >= 2 * row['cycles']
     assert 'Software floor' in markdown.read_text()
     assert '## Performance' in markdown.read_text()
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from unit_support import MemoryTransport, shipped_profile
 from vfd_ros2.control.controller import ControllerConfig, DriveController
 from vfd_ros2.control.loop import CycleLoop
@@ -51,7 +53,8 @@ def test_a_command_arriving_mid_poll_is_written_before_the_remaining_reads():
     assert kinds[first_read + 1] == ('write', SETPOINT)
     assert all(kind == 'read' for kind, _ in kinds[first_read + 2:])
     raw = transport.writes_to(SETPOINT)[-1]
-    assert raw == controller.drive._native_setpoint(2.0)[0]
+    # 2 rad/s at the wheel x 10 = 191 rpm at the motor = 14.4 % of 1330 rpm, in 0.1 %.
+    assert raw == round(2.0 * 10 * 60 / (2 * math.pi) / 1330 * 100 / 0.1) == 144
 
 
 def test_a_repeated_command_waits_for_the_cycle():

@@ -47,7 +47,7 @@ def test_velocity_command_reaches_wire_and_motor(make_harness):
     assert status.output_current > 0.0
     assert 30.0 < status.temperature < 50.0
     assert status.status_word_names == ['A00.00', 'P01.00', 'P01.01', 'P01.02']
-    assert status.status_words_raw[2] == 1                         # P01.02 run flag
+    assert status.status_words_raw[3] == 1                         # P01.02 run flag
 
     h.stream(-1.5)                                                 # reverse by setpoint sign
     status = h.wait_status(lambda s: abs(s.measured_velocity + 1.5) < 0.02, 5.0, 'reverse')
@@ -161,7 +161,7 @@ def test_late_subscriber_gets_current_fault(make_harness, ros_context):
     h = make_harness()
     h.sim.inject_fault(9, 1, latched=True)
     h.wait_status(lambda s: s.fault, 3.0, 'fault')
-    time.sleep(0.1)
+    wait_for(lambda: any(f.active and f.code == 9 for f in h.faults), 3.0, 'fault published')
     late = Node('late', namespace=h.namespace, context=ros_context)
     received: list[DriveFault] = []
     late.create_subscription(DriveFault, 'drive/fault', received.append,
@@ -236,7 +236,7 @@ def test_enable_disable_stop_are_verified(make_harness):
     status = h.wait_status(lambda s: s.state == 'disabled', 3.0, 'disabled at start')
     assert not status.enabled
     h.stream(1.0)
-    time.sleep(0.3)
+    h.wait_cycles(20)
     assert not h.sim.run_requested             # velocity alone does not enable
     reply = h.trigger('enable')
     assert reply.success and 'running' in reply.message, reply.message
@@ -296,7 +296,7 @@ def test_a_fault_other_than_comm_loss_found_at_connect_stays_latched(make_harnes
     h.sim.silent = False
     status = h.wait_status(lambda s: s.online and s.fault, 5.0, 'back online with the fault')
     assert status.fault_code == 7 and status.state == 'fault'
-    time.sleep(0.3)
+    h.wait_cycles(20)
     assert h.sim.fault_code == 7 and not h.sim.run_requested   # not reset, not moved
     assert h.trigger('reset_fault').success
     h.wait_status(lambda s: s.running, 5.0, 'running after the reset')

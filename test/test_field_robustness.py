@@ -201,7 +201,7 @@ def test_control_owned_registers_are_refused(make_harness, code, value, hint):
     reply = h.call(SetDriveParameter, 'set_drive_parameter',
                    SetDriveParameter.Request(name=code, value=value, persistent=False))
     assert not reply.success and hint in reply.message, reply.message
-    time.sleep(0.1)
+    h.wait_cycles(5)
     assert not h.sim.run_requested
     assert {a: v for a, v in h.sim.words.items() if a == h.profile.parameter(code).address} \
         == {a: v for a, v in before.items() if a == h.profile.parameter(code).address}
@@ -248,7 +248,7 @@ def test_a_refused_monitor_value_is_unavailable_not_offline(make_harness, ros_co
     status = h.wait_status(lambda s: s.running and any('D0.23' in u for u in s.unavailable),
                            8.0, 'running with the temperature unavailable')
     assert math.isnan(status.temperature)
-    time.sleep(1.0)
+    h.wait_cycles(100)                      # more than one pass of every polled value
     assert h.status.online and h.status.reconnects == 0
     wait_for(lambda: any(st.level == DiagnosticStatus.WARN and 'D0.23' in st.message
                          for d in diagnostics for st in d.status
@@ -260,7 +260,7 @@ def test_an_unreadable_fault_register_blocks_motion(make_harness):
     h.stream(1.0)
     status = h.wait_status(lambda s: s.state == 'blocked', 5.0, 'blocked')
     assert 'A01.00' in status.stop_reason and status.online
-    time.sleep(0.3)
+    h.wait_cycles(20)
     assert not h.sim.run_requested
     reply = h.trigger('enable')
     assert not reply.success and 'A01.00' in reply.message

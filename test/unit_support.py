@@ -39,17 +39,17 @@ class MemoryTransport(RegisterTransport):
         self.is_open = False
 
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
-        self.stats.transactions += 1
+        self.count(unit, 'transactions')
         self.requests.append(('read', unit, address, count))
         return [self.registers.get(address + i, 0) for i in range(count)]
 
     def write_register(self, unit: int, address: int, value: int) -> None:
-        self.stats.transactions += 1
+        self.count(unit, 'transactions')
         self.requests.append(('write', unit, address, value))
         self.registers[address] = value
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        self.stats.transactions += 1
+        self.count(unit, 'transactions')
         self.requests.append(('write_many', unit, address, list(values)))
         for offset, value in enumerate(values):
             self.registers[address + offset] = value
