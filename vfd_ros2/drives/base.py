@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Mapping, Protocol
 
 from ..errors import ParameterError
-from ..profiles import NO_FAULT, FaultInfo, Parameter, Profile
+from ..profiles import NO_FAULT, Access, FaultInfo, Parameter, Profile
 from ..transports.base import Transport, TransportParameter, TransportStats
 
 #: s added to twice the worst-case addressing interval when sizing a drive's own
@@ -198,3 +198,20 @@ class Drive(Protocol):
                       running: bool) -> tuple[ParameterValue, str]: ...
 
 
+def check_write(profile: Profile, parameter: Parameter, value: float,
+                running: bool) -> int:
+    """Return the raw value of a parameter write every bus accepts; ParameterError why not.
+
+    Control-owned registers, read-only parameters and stopped-only ones while
+    running are refused before the value itself is judged (range, resolution,
+    options, register capacity).
+    """
+    owner = profile.control_owned.get(parameter.code)
+    if owner is not None:
+        raise ParameterError(f'{parameter.code} ({parameter.description}) is not written '
+                             f'through parameters: {owner}')
+    if parameter.access is Access.READ_ONLY:
+        raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
+    if parameter.access is Access.WRITE_WHEN_STOPPED and running:
+        raise ParameterError(f'{parameter.code} can only be changed while the drive is stopped')
+    return parameter.to_raw(value)

@@ -23,7 +23,6 @@ from typing import Any, Callable, ClassVar, Mapping
 from ..errors import ParameterError, ProfileError, ProtocolException, TransportError
 from ..profiles import (
     NO_FAULT,
-    Access,
     CanObject,
     ControlStyle,
     EmcyFault,
@@ -38,7 +37,7 @@ from ..protocol.cia402 import Command, Goal, State, StatusBit, decode_state, nex
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter, TransportStats
 from ..transports.canopen import CanopenTransport, NmtCommand, NmtState
-from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading
+from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading, check_write
 
 log = logging.getLogger(__name__)
 
@@ -462,16 +461,7 @@ class CanopenDrive:
     def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
         """Validate a write without touching the drive; ParameterError says why not."""
         parameter = self._object_of(self.profile.parameter(key))
-        owner = self.profile.control_owned.get(parameter.code)
-        if owner is not None:
-            raise ParameterError(f'{parameter.code} ({parameter.description}) is not written '
-                                 f'through parameters: {owner}')
-        if parameter.access is Access.READ_ONLY:
-            raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
-        if parameter.access is Access.WRITE_WHEN_STOPPED and running:
-            raise ParameterError(
-                f'{parameter.code} can only be changed while the drive is stopped')
-        return parameter, parameter.to_raw(value)
+        return parameter, check_write(self.profile, parameter, value, running)
 
     def set_parameter(self, key: str, value: float, persistent: bool,
                       running: bool) -> tuple[ParameterValue, str]:

@@ -11,7 +11,6 @@ from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from ..errors import BadFrame, ParameterError, ProfileError, ProtocolException
 from ..profiles import (
-    Access,
     DirectionMode,
     Parameter,
     PersistenceKind,
@@ -30,6 +29,7 @@ from .base import (
     HostLossProtection,
     ParameterValue,
     Reading,
+    check_write,
     size_comm_timeout,
 )
 
@@ -395,16 +395,7 @@ class ModbusDrive:
     def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
         """Validate a write without touching the drive; ParameterError says why not."""
         parameter = self.profile.parameter(key)
-        owner = self.profile.control_owned.get(parameter.code)
-        if owner is not None:
-            raise ParameterError(f'{parameter.code} ({parameter.description}) is not written '
-                                 f'through parameters: {owner}')
-        if parameter.access is Access.READ_ONLY:
-            raise ParameterError(f'{parameter.code} ({parameter.description}) is read-only')
-        if parameter.access is Access.WRITE_WHEN_STOPPED and running:
-            raise ParameterError(
-                f'{parameter.code} can only be changed while the drive is stopped')
-        return parameter, parameter.to_raw(value)
+        return parameter, check_write(self.profile, parameter, value, running)
 
     def set_parameter(self, key: str, value: float, persistent: bool,
                       running: bool) -> tuple[ParameterValue, str]:
