@@ -83,3 +83,101 @@ def test_the_loop_preempts_between_cycles_on_request():
         assert steps == [1]                          # and the cycle itself did not run again
     finally:
         loop.stop()
+
+
+def test_a_tripped_watchdog_preempts_a_slow_bus(tmp_path):
+    """4 drives at 9600 baud: a cycle takes ~0.6 s, the stop must not wait for it.
+
+    Without preemption the zero setpoint would come 0.5 s + up to a whole cycle after
+    the last command; with it, within the timeout plus the exchange in flight.
+    """
+    import threading
+    import time
+
+    from vfd_ros2.control.bus import Bus, parse_bus_config
+    from vfd_ros2.sim.model import SimulatedDrive
+    from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+    profile = shipped_profile('boneng_am')
+    sims = [SimulatedDrive(profile, unit) for unit in range(1, 5)]
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine(sims, port, baudrate=9600, emulate_wire_time=True).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.baudrate': 9600},
+        'drives': {f'd{unit}': {'transport.unit_id': unit, 'auto_enable': True,
+                                'command_timeout': 0.5, 'drive_comm_timeout': 3.0}
+                   for unit in range(1, 5)}}))
+    controllers = list(bus.controllers.values())
+    bus.start()
+    try:
+        deadline = time.monotonic() + 15.0
+        while not all(s.run_requested for s in sims):
+            assert time.monotonic() < deadline, 'drives did not start'
+            for controller in controllers:
+                controller.command_velocity(1.0)
+            time.sleep(0.05)
+        last_command = time.monotonic()
+        for controller in controllers:
+            controller.command_velocity(1.0)
+        setpoint = profile.parameter('P07.33').address
+        stopped_at: dict[int, float] = {}
+        done = threading.Event()
+
+        def zero_written() -> bool:
+            for stamp, frame in list(line.received):
+                unit = frame[0]
+                if stamp > last_command and frame[1] == 6 and unit not in stopped_at and \
+                        int.from_bytes(frame[2:4], 'big') == setpoint and frame[4:6] == b'\0\0':
+                    stopped_at[unit] = stamp
+            return len(stopped_at) == 4
+        deadline = time.monotonic() + 5.0
+        while not zero_written():
+            assert time.monotonic() < deadline, f'zero setpoints seen: {stopped_at}'
+            time.sleep(0.01)
+        done.set()
+        latencies = sorted(stamp - last_command for stamp in stopped_at.values())
+        assert latencies[0] > 0.5, latencies             # not before the timeout ...
+        assert latencies[-1] < 0.5 + 0.25, latencies     # ... and not a bus cycle after it
+    finally:
+        bus.shutdown()
+        line.stop()
+
+
+def test_a_tripped_watchdog_wakes_an_idle_loop(tmp_path):
+    """At 2 Hz the loop sleeps ~0.5 s between cycles: the stop must not wait for the next."""
+    import time
+
+    from vfd_ros2.control.factory import build_controller
+    from vfd_ros2.sim.model import SimulatedDrive
+    from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+    profile = shipped_profile('boneng_am')
+    sim = SimulatedDrive(profile, 1)
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine([sim], port).start()
+    controller = build_controller({'transport.port': port, 'auto_enable': True,
+                                   'control_rate': 2.0, 'command_timeout': 0.1,
+                                   'drive_comm_timeout': 3.0})
+    controller.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while not sim.run_requested:
+            assert time.monotonic() < deadline, 'the drive did not start'
+            controller.command_velocity(1.0)
+            time.sleep(0.05)
+        controller.command_velocity(1.0)
+        last_command = time.monotonic()
+        setpoint = profile.parameter('P07.33').address
+        deadline = time.monotonic() + 3.0
+        while True:
+            stops = [stamp for stamp, frame in list(line.received)
+                     if stamp > last_command and frame[1] == 6 and
+                     int.from_bytes(frame[2:4], 'big') == setpoint and frame[4:6] == b'\0\0']
+            if stops:
+                break
+            assert time.monotonic() < deadline, 'no zero setpoint'
+            time.sleep(0.01)
+        # The next cycle is up to 0.5 s away; the watchdog's own moment is 0.1 s.
+        assert 0.1 < stops[0] - last_command < 0.1 + 0.15
+    finally:
+        controller.shutdown()
+        line.stop()

@@ -159,6 +159,11 @@ class Bus:
         for controller in self.controllers.values():
             controller.preempt()
 
+    def preempt_at(self) -> float | None:
+        """Return the earliest moment a drive's command watchdog expires (see CycleLoop)."""
+        moments = [m for c in self.controllers.values() if (m := c.preempt_at()) is not None]
+        return min(moments, default=None)
+
     def finish(self) -> None:
         for controller in self.controllers.values():
             controller.finish()
@@ -168,7 +173,8 @@ class Bus:
     def start(self) -> None:
         if self._loop is None:
             self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
-                                   self.finish, self._clock, preempt=self.preempt)
+                                   self.finish, self._clock, preempt=self.preempt,
+                                   preempt_at=self.preempt_at)
             for controller in self.controllers.values():
                 controller.request_preempt = self._loop.request_preempt
             self._loop.start()

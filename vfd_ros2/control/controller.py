@@ -100,6 +100,7 @@ class DriveController:
         self._cycle_ok = False
         self._command_pending = False
         self._run_written = False        # what the last command write asked: run or idle
+        self._preempted_deadline: float | None = None   # watchdog expiry already acted on
         self._last_running = False
         self._unexpected_starts = 0
         self._check_comm_fault = False   # the first reading after a connect is not read yet
@@ -217,7 +218,8 @@ class DriveController:
         """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
         if self._loop is None:
             self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
-                                   self.step, self.finish, self._clock, preempt=self.preempt)
+                                   self.step, self.finish, self._clock, preempt=self.preempt,
+                                   preempt_at=self.preempt_at)
             self.request_preempt = self._loop.request_preempt
             self._loop.start()
 
@@ -257,9 +259,33 @@ class DriveController:
             self.link.error = str(exc)
             self._cycle_ok = True
 
+    def preempt_at(self) -> float | None:
+        """When the loop must write the stop by itself: the command watchdog's expiry.
+
+        Only while the drive was last told to run; a small margin makes sure the
+        watchdog has expired when the loop wakes.
+        """
+        if not (self._run_written and self.link.online):
+            return None
+        with self._lock:
+            deadline = self._watchdog.deadline
+        if deadline is None or deadline == self._preempted_deadline:
+            return None         # handled once already (a failed write is the link's matter)
+        return deadline + 1e-4
+
     def preempt(self) -> None:
-        """Write a new velocity command now, between polls (commands preempt polls)."""
-        if not (self.link.online and self._command_pending):
+        """Write a new velocity command now, between polls (commands preempt polls).
+
+        A watchdog that expired while the drive was told to run counts as a new
+        command: the stop goes out at once, not a bus cycle later.
+        """
+        if not self.link.online:
+            return
+        with self._lock:
+            tripped = self._run_written and self._watchdog.expired
+            if tripped:
+                self._preempted_deadline = self._watchdog.deadline
+        if not (self._command_pending or tripped):
             return
         try:
             self._write_command()
@@ -473,6 +499,7 @@ class DriveController:
             link_error=self.link.error,
             protection=self.protection,
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
+            link_notes=self.drive.transport.link_notes,
         )
         with self._lock:
             self._state = snapshot

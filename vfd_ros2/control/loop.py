@@ -15,7 +15,9 @@ class CycleLoop:
 
     Between cycles, ``request_preempt()`` (e.g. a new velocity command) runs
     ``preempt`` at once instead of waiting for the next period: commands preempt
-    polls without raising the poll rate. An exception in a step is logged and
+    polls without raising the poll rate. ``preempt_at()`` names a moment at which
+    ``preempt`` must run by itself (the command watchdog's expiry: a tripped
+    watchdog is as urgent as a new command). An exception in a step is logged and
     counted (``errors``: each one is a bug) and the loop goes on: nothing may
     stop the thread that keeps a traction drive under control. An overrun
     restarts the schedule instead of bursting to catch up.
@@ -23,12 +25,14 @@ class CycleLoop:
 
     def __init__(self, name: str, period: float, step: Callable[[], None],
                  finish: Callable[[], None], clock: Callable[[], float] = time.monotonic,
-                 preempt: Callable[[], None] | None = None) -> None:
+                 preempt: Callable[[], None] | None = None,
+                 preempt_at: Callable[[], float | None] | None = None) -> None:
         self.name = name
         self.period = period
         self._step = step
         self._finish = finish
         self._preempt = preempt
+        self._preempt_at = preempt_at
         self._clock = clock
         self._stop = threading.Event()
         self._preempt_requested = threading.Event()
@@ -66,9 +70,16 @@ class CycleLoop:
                 self.overruns += 1
                 next_cycle = self._clock()
             while not self._stop.is_set():
-                delay = next_cycle - self._clock()
-                if delay <= 0 or not self._preempt_requested.wait(delay):
-                    break
+                now = self._clock()
+                due = self._preempt_at() if self._preempt_at is not None else None
+                if due is not None and due < next_cycle:
+                    if due <= now or not self._preempt_requested.wait(due - now):
+                        self._guarded(self._preempt)          # the moment has come
+                        continue
+                else:
+                    delay = next_cycle - now
+                    if delay <= 0 or not self._preempt_requested.wait(delay):
+                        break
                 self._preempt_requested.clear()
                 if self._preempt is not None and not self._stop.is_set():
                     self._guarded(self._preempt)

@@ -78,6 +78,7 @@ class DriveState:
     link_error: str = ''            # why the link failed last ('' while healthy)
     protection: HostLossProtection = HostLossProtection()
     unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
+    link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)
 
     @property
     def state(self) -> str:

@@ -40,3 +40,8 @@ class CommandWatchdog:
     @property
     def expired(self) -> bool:
         return self.age > self.timeout
+
+    @property
+    def deadline(self) -> float | None:
+        """When the newest command expires (clock time), None before the first one."""
+        return None if self._last is None else self._last + self.timeout

@@ -94,6 +94,7 @@ def _warnings(state: DriveState) -> list[str]:
         warnings.append(f'host-loss protection weaker than requested: {protection.describe()}')
     if state.unavailable:
         warnings.append(f'the drive refuses: {"; ".join(state.unavailable)}')
+    warnings.extend(state.link_notes)
     return warnings
 
 

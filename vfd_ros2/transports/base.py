@@ -86,6 +86,11 @@ class Transport(abc.ABC):
     def description(self) -> str:
         """Where this transport talks, for hardware ids and logs."""
 
+    @property
+    def link_notes(self) -> tuple[str, ...]:
+        """What an operator should know about the link (shown in diagnostics as WARN)."""
+        return ()
+
     def wire_seconds(self, byte_count: int, frames: int) -> float | None:
         """Time ``byte_count`` bytes in ``frames`` frames occupy the medium (None: unknown)."""
         return None

@@ -195,6 +195,11 @@ class _RtuSettings:
         TransportParameter('late_reply_guard', -1.0,
                            's a unit is not asked again after it timed out, so that a late '
                            'reply is discarded, not taken for the next one; -1 = timeout'),
+        TransportParameter('low_latency', True,
+                           'ask the serial driver for low-latency mode (USB adapters hold '
+                           'replies for their latency timer otherwise); refusal is reported'),
+        TransportParameter('echo', False,
+                           'the adapter hears its own transmission: read it back and check it'),
     )
     port: str
     baudrate: int
@@ -215,7 +220,9 @@ class _RtuSettings:
                    stopbits=stopbits, bytesize=int(settings.get('bytesize', 8)),
                    timeout=float(settings['timeout']),
                    frame_gap=gap if gap >= 0 else None,
-                   late_reply_guard=guard if guard >= 0 else None)
+                   late_reply_guard=guard if guard >= 0 else None,
+                   low_latency=bool(settings.get('low_latency', True)),
+                   echo=bool(settings.get('echo', False)))
 
     @property
     def description(self) -> str:
@@ -248,7 +255,8 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
 
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
-                 frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
+                 frame_gap: float | None = None, late_reply_guard: float | None = None,
+                 low_latency: bool = True, echo: bool = False) -> None:
         super().__init__()
         self.port = port
         self.baudrate = baudrate
@@ -258,7 +266,12 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
         self.timeout = timeout
         self._link = RtuLink(port, baudrate, parity, stopbits, bytesize, timeout,
                              frame_gap_s=frame_gap, late_reply_guard=late_reply_guard,
+                             low_latency=low_latency, echo=echo,
                              on_bytes=self._count_bytes, on_discard=self._count_discarded)
+
+    @property
+    def link_notes(self) -> tuple[str, ...]:
+        return self._link.link_notes
 
     @property
     def late_reply_guard(self) -> float:
@@ -304,13 +317,15 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
 class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
     """Modbus RTU on pymodbus' stock synchronous serial client (the reference).
 
-    ``frame_gap`` and ``late_reply_guard`` are accepted for a common signature but
-    have no effect: the stock client sends as soon as it is called.
+    ``frame_gap``, ``late_reply_guard``, ``low_latency`` and ``echo`` are accepted
+    for a common signature but have no effect: the stock client sends as soon as it
+    is called.
     """
 
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
-                 frame_gap: float | None = None, late_reply_guard: float | None = None) -> None:
+                 frame_gap: float | None = None, late_reply_guard: float | None = None,
+                 low_latency: bool = True, echo: bool = False) -> None:
         self.port = port
         self.baudrate = baudrate
         self.parity = parity

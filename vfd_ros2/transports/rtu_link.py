@@ -32,6 +32,13 @@ Here every reply is one frame that must match its request:
 What stays undetectable, by the protocol: a read reply from U that comes later than
 ``timeout + late_reply_guard`` and has the same function code and length as U's
 next request. ``late_reply_guard`` is therefore sized with ``timeout``.
+
+USB-RS485 adapters: most (FTDI and friends) hold received bytes for a latency
+timer (16 ms by default on Linux) unless the port is in low-latency mode, which
+``low_latency`` asks the kernel driver for at open (``link_notes`` says when it is
+refused); some adapters hear their own transmission (``echo``): the frame is then
+read back and checked byte for byte before the reply (a mismatch is a collision
+on the bus: a bad frame).
 """
 
 from __future__ import annotations
@@ -80,6 +87,7 @@ class RtuLink:
     def __init__(self, port: str, baudrate: int, parity: str = 'N', stopbits: int = 1,
                  bytesize: int = 8, timeout: float = 0.1, frame_gap_s: float | None = None,
                  completion_margin: float = 0.02, late_reply_guard: float | None = None,
+                 low_latency: bool = True, echo: bool = False,
                  on_bytes: Callable[[bool, int], None] | None = None,
                  on_discard: DiscardCallback | None = None) -> None:
         self.port = port
@@ -92,6 +100,10 @@ class RtuLink:
         self.gap = frame_gap(baudrate, self.char_time) if frame_gap_s is None else frame_gap_s
         self.completion_margin = completion_margin
         self.late_reply_guard = timeout if late_reply_guard is None else late_reply_guard
+        self.low_latency = low_latency
+        self.echo = echo
+        #: what an operator should know about the port (e.g. low-latency mode refused)
+        self.link_notes: tuple[str, ...] = ()
         self._on_bytes = on_bytes or (lambda _sending, _count: None)
         self._on_discard = on_discard or (lambda _unit, _kind: None)
         self._framer = FramerRTU(DecodePDU(is_server=False))
@@ -118,6 +130,20 @@ class RtuLink:
         self._fd = port.fileno()
         self._quiet_from = time.monotonic() + self.gap
         self._hold.clear()
+        self.link_notes = self._request_low_latency(port) if self.low_latency else ()
+
+    def _request_low_latency(self, port: serial.Serial) -> tuple[str, ...]:
+        """Ask the serial driver not to hold received bytes (ASYNC_LOW_LATENCY)."""
+        try:
+            device = os.path.realpath(self.port)
+            if device.startswith('/dev/pts/'):
+                return ()          # a pseudo-terminal (a simulated line): no adapter to tune
+            port.set_low_latency_mode(True)
+        except (ValueError, OSError, NotImplementedError) as exc:
+            return (f'low-latency mode refused by the serial driver of {self.port} ({exc}): '
+                    'a USB adapter may hold each reply for its latency timer (FTDI: 16 ms); '
+                    "set it with setserial or the adapter's latency_timer",)
+        return ()
 
     def close(self) -> None:
         port, self._serial, self._fd = self._serial, None, -1
@@ -146,6 +172,8 @@ class RtuLink:
             sent_at = time.monotonic()
             self._write(frame)
             self._on_bytes(True, len(frame))
+            if self.echo:
+                self._check_echo(frame, sent_at)
             deadline = sent_at + len(frame) * self.char_time + self.timeout
             while True:
                 data = self._read_frame(deadline, reply_bytes)
@@ -170,6 +198,24 @@ class RtuLink:
             raise LinkLost(str(exc)) from exc
 
     # --- internals ----------------------------------------------------------------
+
+    def _check_echo(self, frame: bytes, sent_at: float) -> None:
+        """Read back our own transmission (an echoing adapter); raise if it came back different."""
+        deadline = sent_at + len(frame) * self.char_time + self.completion_margin + self.gap
+        heard = b''
+        while len(heard) < len(frame):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not select.select([self._fd], [], [], remaining)[0]:
+                break
+            chunk = os.read(self._fd, len(frame) - len(heard))
+            if not chunk:
+                raise OSError('port closed')
+            heard += chunk
+        self._on_bytes(False, len(heard))
+        if heard != frame:
+            self._resync()
+            raise LinkBadFrame('the echo of the request differs (a collision, or no echo: '
+                               'check transport.echo)', heard)
 
     def _decode(self, data: bytes) -> ModbusPDU | None:
         """Return the PDU of exactly one well-formed frame (CRC checked), else None.
