@@ -154,3 +154,59 @@ def test_refused_register_is_a_protocol_exception_not_a_comm_failure(tmp_path):
     assert info.value.code == 2 and 'illegal data address' in info.value.text
     assert not isinstance(info.value, TransportError)
     assert transport.stats_for(1).exceptions == 1 and transport.stats_for(1).timeouts == 0
+
+
+def test_an_echoing_adapter_is_read_back_and_checked(tmp_path):
+    drive, blocks = distinct_drive(1)
+    line = SimulatedRtuLine([drive], tmp_path / 'line', adapter_echo=True,
+                            tick_period=0.001).start()
+    plain = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    echoing = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT, echo=True)
+    address, values = blocks[0]
+    try:
+        # Without echo handling the master reads its own request as the reply.
+        with pytest.raises((BadFrame, CommTimeout)):
+            plain.read_registers(1, address, len(values))
+        plain.close()
+        for _ in range(20):
+            assert echoing.read_registers(1, address, len(values)) == values
+        echoing.write_register(1, address, 99)
+    finally:
+        plain.close()
+        echoing.close()
+        line.stop()
+    assert echoing.stats_for(1).bad_frames == 0 and echoing.stats_for(1).transactions == 21
+
+
+def test_low_latency_is_not_asked_of_a_pseudo_terminal(tmp_path):
+    drive, _ = distinct_drive(1)
+    line = SimulatedRtuLine([drive], tmp_path / 'line').start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    try:
+        transport.open()
+        assert transport.link_notes == ()
+    finally:
+        transport.close()
+        line.stop()
+
+
+def test_low_latency_refused_by_a_real_serial_driver_is_reported():
+    """A driver without TIOCSSERIAL (pyserial raises ValueError): the refusal is a note."""
+    from vfd_ros2.transports.rtu_link import RtuLink
+
+    class RefusingPort:
+        def set_low_latency_mode(self, on: bool) -> None:
+            raise ValueError('Failed to update ASYNC_LOW_LATENCY flag to True: [Errno 25]')
+
+    class AcceptingPort:
+        def __init__(self) -> None:
+            self.asked = None
+
+        def set_low_latency_mode(self, on: bool) -> None:
+            self.asked = on
+
+    link = RtuLink('/dev/ttyUSB7', 115200)
+    notes = link._request_low_latency(RefusingPort())
+    assert len(notes) == 1 and 'low-latency mode refused' in notes[0] and '16 ms' in notes[0]
+    accepting = AcceptingPort()
+    assert link._request_low_latency(accepting) == () and accepting.asked is True

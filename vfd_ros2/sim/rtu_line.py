@@ -26,6 +26,12 @@ has no baud rate, behave like an RS-485 line at ``baudrate``:
   byte at the true end of the frame;
 - a request that starts less than t3.5 after the previous reply ended is
   served but counted (``stats.gap_violations``): a real slave may merge it.
+
+The master's USB-RS485 adapter can be emulated too: ``adapter_latency`` holds
+each reply for that long after its last byte (an FTDI adapter's latency timer,
+16 ms by default on Linux, when the port is not in low-latency mode; the worst
+case of a timer that runs independently), and ``adapter_echo`` sends the
+master's own request bytes back as an adapter that hears its transmission does.
 """
 
 from __future__ import annotations
@@ -106,7 +112,8 @@ class SimulatedRtuLine:
                  baudrate: int = 115200, parity: str = 'N', stopbits: int = 1,
                  emulate_wire_time: bool = False, corrupt_rate: float = 0.0,
                  tick_period: float = 0.005, seed: int | None = None,
-                 response_delay: float = 0.0, faults: LineFaults | None = None) -> None:
+                 response_delay: float = 0.0, faults: LineFaults | None = None,
+                 adapter_latency: float = 0.0, adapter_echo: bool = False) -> None:
         self.drives = {drive.unit_id: drive for drive in drives}
         self.link_path = Path(link_path)
         self.baudrate = baudrate
@@ -119,6 +126,8 @@ class SimulatedRtuLine:
         self._wire_free = 0.0         # emulated: when the line's last byte ends
         self._last_reply_end = -1.0
         self._request_start: float | None = None
+        self.adapter_latency = adapter_latency
+        self.adapter_echo = adapter_echo
         self.faults = faults or LineFaults()
         if corrupt_rate:
             self.faults.corrupt_rate = corrupt_rate
@@ -197,6 +206,8 @@ class SimulatedRtuLine:
                 except OSError:
                     chunk = b''
                 if chunk:
+                    if self.adapter_echo:
+                        self._echo(chunk)
                     if self.emulate_wire_time:
                         start = max(now, self._wire_free)
                         if not self._buffer:
@@ -273,6 +284,17 @@ class SimulatedRtuLine:
         With wire-time emulation the bytes reach the pty as each would finish on
         the wire (see the module docstring); otherwise all at once at ``start``.
         """
+        if self.adapter_latency:
+            # The adapter hands the reply over only when its latency timer fires.
+            end = start + (len(reply) * self.char_time if self.emulate_wire_time else 0.0)
+            self._wait_until(end + self.adapter_latency)
+            try:
+                os.write(self._master_fd, reply)
+                self.stats.replies += 1
+            except OSError:
+                pass
+            self._wire_free = self._last_reply_end = end
+            return end
         self._wait_until(start)
         if not self.emulate_wire_time:
             try:
@@ -299,6 +321,12 @@ class SimulatedRtuLine:
         self._wire_free = self._last_reply_end = reply_end
         self.stats.replies += 1
         return reply_end
+
+    def _echo(self, chunk: bytes) -> None:
+        try:
+            os.write(self._master_fd, chunk)
+        except OSError:
+            pass
 
     def _drop_heard_meanwhile(self) -> None:
         """Lose the requests that arrived while a deaf slave was busy answering late."""
