@@ -379,6 +379,51 @@ def test_soem_maps_pdos_reaches_op_and_exchanges_process_data(start_segment, soe
 
 
 @pytestmark_integration
+def test_pdo_assignment_written_in_pre_op_changes_the_mapping(start_segment, soem_master):
+    start_segment([IMO_HD2_EC_TX508])
+    soem_master.config_init()
+    slave = soem_master.slaves[0]
+    # CiA 301 procedure: clear the count, write the entries, set the count
+    slave.sdo_write(0x1C12, 0, b'\x00')
+    slave.sdo_write(0x1C12, 1, struct.pack('<H', 0x1601))        # controlword + 0x607A
+    slave.sdo_write(0x1C12, 0, b'\x01')
+    slave.sdo_write(0x1A01, 0, b'\x00')
+    slave.sdo_write(0x1A01, 1, struct.pack('<I', 0x60410010))
+    slave.sdo_write(0x1A01, 2, struct.pack('<I', 0x606C0020))
+    slave.sdo_write(0x1A01, 0, b'\x02')
+    slave.sdo_write(0x1C13, 0, b'\x00')
+    slave.sdo_write(0x1C13, 1, struct.pack('<H', 0x1A01))
+    slave.sdo_write(0x1C13, 0, b'\x01')
+    def abort_of(call) -> int:
+        with pytest.raises(pysoem.SdoError) as caught:
+            call()
+        return caught.value.abort_code
+
+    # entries can only change while the count is 0 (ETG.1000.6 abort 0x06010003)
+    assert abort_of(lambda: slave.sdo_write(0x1A01, 1, bytes(4))) == 0x06010003
+    assert abort_of(lambda: slave.sdo_write(0x1C12, 1, struct.pack('<H', 0x1600))) == 0x06010003
+    # entries are checked when the count is set: 0x6042 is 16 bits, not 32
+    slave.sdo_write(0x1A02, 0, b'\x00')
+    slave.sdo_write(0x1A02, 1, struct.pack('<I', 0x60420020))
+    assert abort_of(lambda: slave.sdo_write(0x1A02, 0, b'\x01')) == 0x06040041
+    assert soem_master.config_map() == 6 + 6
+    assert bring_to_op(soem_master) == 3
+    assert abort_of(lambda: slave.sdo_write(0x1C12, 0, b'\x00')) == 0x08000022   # PRE-OP only
+
+
+@pytestmark_integration
+def test_link_down_silences_the_segment_and_up_restores_it(start_segment, soem_master):
+    segment = start_segment([BONENG_MH_EC])
+    soem_master.config_init()
+    expected = bring_to_op(soem_master)
+    segment.link_down()
+    assert exchange(soem_master) < 0                          # no frame came back
+    segment.link_up()
+    assert cycle_until(soem_master, lambda: exchange(soem_master) > 0, 2.0, 'frames again')
+    assert exchange(soem_master) == expected
+
+
+@pytestmark_integration
 def test_soem_sdo_expedited_and_aborts(start_segment, soem_master):
     start_segment([IMO_HD2_EC_TX508])
     soem_master.config_init()

@@ -784,9 +784,11 @@ class Esc:
             if not size:
                 continue
             sm = next((s for s in self._sms if s.number == number), None)
-            if (sm is None or sm.end - sm.start != size or sm.mailbox
-                    or sm.control & SM_DIRECTION_MASK != direction or sm.start < REGISTER_SPACE):
-                return code
+            if (sm is None or sm.mailbox or sm.control & SM_DIRECTION_MASK != direction
+                    or sm.start < REGISTER_SPACE or sm.end > len(self.memory)):
+                return ALStatusCode.INVALID_SYNC_MANAGER_CONFIGURATION
+            if sm.end - sm.start != size:
+                return code                                # length does not fit the mapping
         return 0
 
     def _op_needs_outputs(self) -> bool:
