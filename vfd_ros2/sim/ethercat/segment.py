@@ -204,6 +204,8 @@ class SegmentServer:
             return {'al_status': esc.al_status, 'al_status_code': esc.al_status_code,
                     'station_address': esc.station_address,
                     'watchdog_expired': esc.watchdog_expired,
+                    'watchdog_s': esc.watchdog_time_s(),
+                    'sync0_cycle_ns': esc.sync0_cycle_ns(),
                     'mailbox_received': esc.mailbox.received}
         if name == 'stats':
             samples = sorted(self.processing_ns)
@@ -300,7 +302,7 @@ class SimulatedSegment:
         return self.call(position, 'snapshot')
 
     def esc(self, position: int) -> dict[str, Any]:
-        """AL status, AL status code, station address, watchdog of slave ``position``'s ESC."""
+        """AL status and code, station address, watchdog, SYNC0 of slave ``position``'s ESC."""
         return self._request('esc', position)
 
     def stats(self) -> dict[str, Any]:
