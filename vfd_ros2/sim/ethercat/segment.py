@@ -264,6 +264,11 @@ class SimulatedSegment:
             self.close()
             raise SegmentError(f'simulated segment failed to start:\n{detail}')
 
+    @property
+    def pid(self) -> int | None:
+        """Process id of the serving process (CPU accounting)."""
+        return self._process.pid
+
     def _request(self, name: str, *args: Any, timeout: float = 5.0) -> Any:
         if not self._process.is_alive():
             raise SegmentError('the simulated segment process is not running')
