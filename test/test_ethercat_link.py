@@ -1,0 +1,233 @@
+"""The EtherCAT segment master (vfd_ros2.transports.ethercat) against the simulated segment.
+
+Real frames on a veth pair in a namespace the test creates; the simulated
+drives run in their own process. Skips (saying why) without root or pysoem.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+
+import pytest
+
+from ethercat_support import pysoem
+from harness import wait_for
+from vfd_ros2.errors import CommTimeout, ProtocolException, TransportError
+from vfd_ros2.sim.ethercat.catalog import BONENG_MH_EC, IMO_HD2_EC_TX508
+from vfd_ros2.transports.ethercat import (
+    AlStateError,
+    EthercatError,
+    EthercatSegment,
+    PdoConfiguration,
+    SdoAbortError,
+    SegmentSettings,
+    SyncMode,
+)
+from vfd_ros2.transports.ethercat_codes import ALState
+
+pytest_plugins = ['ethercat_harness']
+
+pytestmark = pytest.mark.skipif(pysoem is None, reason='pysoem is not installed')
+
+#: IMO: velocity-only PDOs (CiA 301 procedure on 0x1A01; 0x1601 = controlword + 0x607A)
+IMO_VELOCITY = PdoConfiguration(rx=(0x1600,), tx=(0x1A01,),
+                                mappings={0x1A01: (0x60410010, 0x606C0020, 0x603F0010)})
+#: BONENG CoE_VL: the fixed pair (manual L3484-3490)
+BONENG_VL = PdoConfiguration(rx=(0x1701,), tx=(0x1B01,))
+
+
+@pytest.fixture
+def open_segment(veth_link):
+    """``open_segment(**settings)`` -> an opened EthercatSegment; closed afterwards."""
+    segments = []
+
+    def open_(callbacks=None, **overrides):
+        settings = SegmentSettings(interface=veth_link.master_interface,
+                                   namespace=veth_link.namespace, **overrides)
+        segment = EthercatSegment(settings, **(callbacks or {}))
+        segments.append(segment)
+        segment.open()
+        return segment
+
+    try:
+        yield open_
+    finally:
+        for segment in segments:
+            segment.close()
+
+
+def statusword(data: bytes) -> int:
+    return struct.unpack_from('<H', data)[0]
+
+
+def test_open_identifies_slaves_and_maps_chosen_pdos(start_segment, open_segment):
+    start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    link = open_segment()
+    assert [(i.position, i.name, i.vendor_id, i.product_code, i.revision)
+            for i in (s.identity for s in link.slaves)] == [
+        (0, 'IMO-EtherCAT', 0x4D8, 0x9252, 1), (1, 'AD_Drive', 0, 0, 1)]
+    assert all(s.state is ALState.PRE_OP for s in link.slaves)
+    link.configure_pdos(0, IMO_VELOCITY)
+    link.configure_pdos(1, BONENG_VL)                          # fixed: accepted as it is
+    with pytest.raises(EthercatError, match='fixed assignment'):
+        link.configure_pdos(1, PdoConfiguration(rx=(0x1600,), tx=(0x1A00,)))
+    link.start()
+    imo, boneng = link.slaves
+    assert (imo.output_size, imo.input_size) == (21, 8)
+    assert (boneng.output_size, boneng.input_size) == (4, 4)
+    assert all(s.state is ALState.OP for s in link.slaves)
+    wait_for(lambda: link.stats().cycles > 50, 2.0, 'cycles')
+    stats = link.stats()
+    assert stats.expected_wkc == 6 and stats.last_wkc == 6 and stats.wkc_errors == 0
+
+
+def test_outputs_drive_the_simulated_drive_and_inputs_report_it(start_segment, open_segment):
+    sim = start_segment([BONENG_MH_EC])
+    link = open_segment(cycle_time_s=0.002)
+    link.configure_pdos(0, BONENG_VL)
+    link.start()
+    drive = link.slave(0)
+    drive.set_outputs(struct.pack('<Hh', 0x7E, 900))
+    wait_for(lambda: statusword(drive.inputs()) & 0x6F == 0x21, 2.0, 'ready to switch on')
+    drive.set_outputs(struct.pack('<Hh', 0x7F, 900))
+    wait_for(lambda: statusword(drive.inputs()) & 0x6F == 0x27, 2.0, 'operation enabled')
+    wait_for(lambda: struct.unpack_from('<h', drive.inputs(), 2)[0] > 50, 2.0, 'speed')
+    assert sim.drive(0)['controlword'] == 0x7F
+    assert time.monotonic() - drive.inputs_time < 0.05
+    with pytest.raises(ValueError, match='4 output bytes'):
+        drive.set_outputs(b'\x00')
+
+
+def test_sdo_while_cycling_expedited_segmented_and_aborts(start_segment, open_segment):
+    start_segment([BONENG_MH_EC, IMO_HD2_EC_TX508])
+    link = open_segment()
+    link.configure_pdos(0, BONENG_VL)
+    link.start()
+    boneng = link.slave(0)
+    assert boneng.sdo_read(0x1000, 0) == struct.pack('<I', 0x00010192)
+    blob = bytes(range(200)) * 2
+    boneng.sdo_write(0x2FFF, 0, blob)                          # > 128-byte mailbox
+    assert boneng.sdo_read(0x2FFF, 0, size=1024) == blob
+    with pytest.raises(SdoAbortError) as caught:
+        boneng.sdo_write(0x6041, 0, b'\x00\x00')
+    assert isinstance(caught.value, ProtocolException)
+    assert (caught.value.code, caught.value.text) == (
+        0x06010002, 'Attempt to write a read only object')
+    assert '0x6041:0' in str(caught.value)
+    with pytest.raises(SdoAbortError) as caught:
+        link.slave(1).sdo_read(0x7777, 1)
+    assert caught.value.code == 0x06020000
+    assert link.stats().wkc_errors == 0                        # SDOs never disturbed the cycle
+
+
+def test_emergencies_are_surfaced(start_segment, open_segment):
+    sim = start_segment([BONENG_MH_EC])
+    received = []
+    link = open_segment(mailbox_poll_s=0.01, callbacks={'on_emergency': received.append})
+    link.configure_pdos(0, BONENG_VL)
+    link.start()
+    sim.call(0, 'inject_fault', 0x3210, 0x05, b'\x0a')
+    emcy = wait_for(lambda: received and received[0], 2.0, 'the emergency callback')
+    assert (emcy.position, emcy.error_code, emcy.error_register) == (0, 0x3210, 0x05)
+    assert emcy.data[:1] == b'\x0a'
+    assert [e.error_code for e in link.slave(0).take_emergencies()] == [0x3210]
+    assert link.slave(0).take_emergencies() == []
+    wait_for(lambda: statusword(link.slave(0).inputs()) & 0x4F == 0x08, 2.0, 'fault bit')
+
+
+def test_refused_state_change_raises_with_the_al_status_code(start_segment, open_segment):
+    sim = start_segment([IMO_HD2_EC_TX508])
+    link = open_segment()
+    sim.call(0, 'refuse_state', int(ALState.SAFE_OP), 0x0025)
+    with pytest.raises(AlStateError) as caught:
+        link.start()
+    assert (caught.value.position, caught.value.code) == (0, 0x0025)
+    assert caught.value.text == 'Invalid output mapping'
+    assert 'PRE_OP+ERROR' in str(caught.value)
+    assert isinstance(caught.value, TransportError)
+
+
+def test_dc_mode_with_an_unsupported_cycle_is_refused(start_segment, open_segment):
+    start_segment([IMO_HD2_EC_TX508])
+    link = open_segment(sync_mode=SyncMode.DC, cycle_time_s=0.003)   # not 250 us .. 2 ms
+    with pytest.raises(AlStateError) as caught:
+        link.start()
+    assert caught.value.code == 0x0036
+
+
+def test_dc_mode_runs(start_segment, open_segment):
+    sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
+    link = open_segment(sync_mode=SyncMode.DC, cycle_time_s=0.001)
+    link.start()
+    assert sim.esc(1)['sync0_cycle_ns'] == 1_000_000
+    wait_for(lambda: link.stats().cycles > 200, 3.0, 'cycles')
+    assert link.stats().last_wkc == link.stats().expected_wkc == 6
+
+
+def test_sm_watchdog_is_configured(start_segment, open_segment):
+    sim = start_segment([BONENG_MH_EC, IMO_HD2_EC_TX508])
+    link = open_segment(watchdog_s=0.03)
+    link.configure_pdos(0, BONENG_VL)
+    link.start()
+    # 0x0420 x 40 ns x (0x0400 + 2): what the ESCs now count down (their expiry in OP is
+    # test_ethercat_sim's test_sm_watchdog_stops_the_drive_when_process_data_stops)
+    assert [round(sim.esc(n)['watchdog_s'], 6) for n in range(2)] == [0.03, 0.03]
+    assert sim.esc(0)['sync0_cycle_ns'] == 0                   # free run
+
+
+def test_lost_slave_is_detected_and_brought_back(start_segment, open_segment):
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    events = []
+    callbacks = {'on_slave_lost': lambda p: events.append(('lost', p)),
+                 'on_slave_returned': lambda p: events.append(('back', p))}
+    link = open_segment(callbacks=callbacks, supervise_s=0.02)
+    link.configure_pdos(1, BONENG_VL)
+    link.start()
+    expected = link.stats().expected_wkc
+    sim.unplug(1)
+    wait_for(lambda: ('lost', 1) in events, 2.0, 'the loss to be noticed')
+    assert link.slave(1).lost and not link.slave(0).lost
+    assert link.stats().last_wkc == 3
+    sim.replug(1)
+    wait_for(lambda: ('back', 1) in events, 3.0, 'the slave to come back')
+    wait_for(lambda: link.stats().last_wkc == expected, 2.0, 'full WKC')
+    assert link.slave(1).state is ALState.OP
+    # a power cycle (INIT, station address 0) is found by position and reconfigured
+    events.clear()
+    sim.power_cycle(1)
+    wait_for(lambda: ('back', 1) in events, 5.0, 'the power-cycled slave to come back')
+    assert sim.esc(1)['al_status'] == int(ALState.OP)
+
+
+def test_open_without_slaves_times_out_boundedly(veth_link):
+    link = EthercatSegment(SegmentSettings(interface=veth_link.master_interface,
+                                           namespace=veth_link.namespace))
+    start = time.monotonic()
+    with pytest.raises(CommTimeout, match='no EtherCAT slave'):
+        link.open()
+    assert time.monotonic() - start < 2.0
+    link.close()
+    with pytest.raises(EthercatError, match='not open'):
+        link.request_state(ALState.OP)
+
+
+def test_sdo_calls_from_several_threads_are_serialised(start_segment, open_segment):
+    start_segment([BONENG_MH_EC, BONENG_MH_EC])
+    link = open_segment()
+    errors = []
+
+    def reader(position):
+        try:
+            for _ in range(30):
+                assert link.slave(position).sdo_read(0x1008, 0) == b'AD_Drive'
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=reader, args=(n % 2,)) for n in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(10)
+    assert errors == []

@@ -1,0 +1,693 @@
+"""EtherCAT segment master on pysoem (SOEM): process data, SDO, AL states, emergencies, recovery.
+
+Moves raw bytes and object values; knows nothing of drives, profiles or ROS.
+One ``EthercatSegment`` owns one ``pysoem.Master`` (one network interface) and:
+
+- ONE process-data thread serving every slave of the segment: each cycle it
+  copies the outputs every slave handle holds into SOEM's IO map, sends the
+  LRW (plus the DC reference-time datagram in DC mode), waits for the frame,
+  checks the working counter against SOEM's expected value and copies the
+  inputs out; it counts missed cycles and WKC errors and records the wake-up
+  jitter. Nothing else runs in it: no mailbox, no state handling.
+- a supervisor thread for everything that may block for milliseconds: reading
+  AL states when the WKC drops, acknowledging errors and re-entering OP, finding
+  a slave that vanished and came back (SOEM recover + reconfig), and polling
+  the mailboxes for CoE emergencies (SOEM reads them only during mailbox access).
+- per-slave handles (``EthercatSlave``): identity from the SII, SDO upload/download
+  (expedited and segmented; aborts raise ``SdoAbortError`` with the CiA 301 code
+  and text), PDO assignment/mapping at PRE-OP, outputs/inputs (thread-safe),
+  AL state with the AL status code, emergencies.
+
+Every call is bounded in time (SOEM's frame/state/mailbox timeouts, set from the
+settings) and raises the package's errors (``vfd_ros2.errors``): AL state
+failures carry the ETG.1000.6 AL status code and its text.
+
+SOEM needs raw-socket rights (root or CAP_NET_RAW). For tests the interface can
+live in a network namespace (``vfd_ros2.transports.netns``).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import os
+import statistics
+import struct
+import threading
+import time
+import warnings
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
+from .ethercat_codes import (
+    AL_ERROR_FLAG,
+    AL_STATE_MASK,
+    ALState,
+    al_state_name,
+    al_status_text,
+    sdo_abort_text,
+)
+from .netns import run_in_namespace
+
+try:
+    import pysoem
+except ImportError:                     # reported by EthercatSegment.open
+    pysoem = None
+
+log = logging.getLogger(__name__)
+
+#: how long an AL error flag must persist before a state request counts as refused
+ERROR_SETTLE_S = 0.02
+
+
+class SyncMode(enum.Enum):
+    """How slaves run their cycle: on their own clock, or on DC SYNC0 (ETG.1020)."""
+
+    FREE_RUN = 'free_run'
+    DC = 'dc'
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Plain settings of one EtherCAT segment (no drive knowledge)."""
+
+    interface: str
+    namespace: str | None = None           # network namespace of the interface (tests)
+    cycle_time_s: float = 0.002
+    sync_mode: SyncMode = SyncMode.FREE_RUN
+    dc_shift_s: float = 0.0                # SYNC0 shift relative to the cycle start
+    watchdog_s: float | None = 0.1         # SM (process-data) watchdog; None: slave default
+    state_timeout_s: float = 2.0           # each AL state change
+    sdo_timeout_s: float = 0.7             # each SDO exchange
+    mailbox_poll_s: float = 0.05           # emergency polling period; 0 = only during SDOs
+    supervise_s: float = 0.05              # state check period while something is wrong
+    recover: bool = True                   # bring back slaves that vanished
+    realtime_priority: int | None = None   # SCHED_FIFO priority of the process-data thread
+
+
+@dataclass(frozen=True)
+class SlaveIdentity:
+    """What a slave's SII says it is."""
+
+    position: int                          # 0-based, in line order
+    name: str
+    vendor_id: int
+    product_code: int
+    revision: int
+
+
+@dataclass(frozen=True)
+class PdoConfiguration:
+    """PDO assignment for SM2/SM3, and mapping objects to (re)write first.
+
+    ``rx``/``tx`` are the mapping-object indices for 0x1C12/0x1C13; ``mappings``
+    maps a mapping-object index to its entries (0xIIIISSLL: index, subindex,
+    bit length). A drive whose assignment is fixed (read-only) is accepted when
+    it already holds the wanted assignment (e.g. BONENG's 0x1701/0x1B01).
+    """
+
+    rx: tuple[int, ...]
+    tx: tuple[int, ...]
+    mappings: dict[int, tuple[int, ...]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Emergency:
+    """A CoE emergency received from a slave (ETG.1000.6 5.6.2.4; codes CiA 301 table 21)."""
+
+    position: int
+    error_code: int
+    error_register: int
+    data: bytes
+    time: float                            # monotonic, when the master read it
+
+
+@dataclass(frozen=True)
+class CycleStats:
+    """Counters of the process-data thread since ``start``."""
+
+    cycles: int
+    missed_cycles: int                     # cycle slots that passed without a frame sent
+    wkc_errors: int                        # frames back with WKC < expected
+    lost_frames: int                       # no frame back within the cycle
+    expected_wkc: int
+    last_wkc: int
+    jitter_p50_s: float                    # wake-up lateness against the schedule
+    jitter_p99_s: float
+    jitter_max_s: float
+    cycle_cpu_s: float                     # CPU time of the process-data thread
+    elapsed_s: float
+
+
+class EthercatError(TransportError):
+    """Something on the EtherCAT segment failed."""
+
+
+class AlStateError(EthercatError):
+    """A slave did not reach a requested AL state; carries its AL status code and text."""
+
+    def __init__(self, position: int, requested: ALState, status: int, code: int) -> None:
+        self.position = position
+        self.requested = requested
+        self.status = status
+        self.code = code
+        self.text = al_status_text(code)
+        super().__init__(
+            f'slave {position} did not reach {requested.name}: it is {al_state_name(status)}, '
+            f'AL status code 0x{code:04X} ({self.text})')
+
+
+class SdoAbortError(ProtocolException):
+    """A slave aborted an SDO transfer with a CiA 301 abort code."""
+
+    def __init__(self, position: int, index: int, subindex: int, code: int) -> None:
+        self.position = position
+        self.index = index
+        self.subindex = subindex
+        super().__init__(code, sdo_abort_text(code), f'slave {position} 0x{index:04X}:{subindex}')
+        self.args = (f'SDO abort 0x{code:08X} ({self.text}) from slave {position} at '
+                     f'0x{index:04X}:{subindex}',)
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+def _state(value: int) -> ALState:
+    try:
+        return ALState(value & AL_STATE_MASK)
+    except ValueError:
+        return ALState.NONE
+
+
+class EthercatSlave:
+    """Handle of one slave on a segment; positions are 0-based in line order."""
+
+    def __init__(self, segment: 'EthercatSegment', position: int, soem_slave: Any) -> None:
+        self._segment = segment
+        self._soem = soem_slave
+        self.position = position
+        self.identity = SlaveIdentity(position, soem_slave.name, soem_slave.man, soem_slave.id,
+                                      soem_slave.rev)
+        self._outputs = b''
+        self._inputs = b''
+        self._inputs_time = 0.0
+        self._emergencies: deque[Emergency] = deque(maxlen=256)
+        self.state = ALState.PRE_OP
+        self.al_status = 0
+        self.al_status_code = 0
+        self.lost = False
+        self.target = ALState.PRE_OP          # the state the supervisor keeps it in
+        soem_slave.add_emergency_callback(self._on_emergency)
+
+    # -- mailbox -----------------------------------------------------------------------
+
+    def _on_emergency(self, emcy: Any) -> None:
+        data = struct.pack('<BHH', emcy.b1 & 0xFF, emcy.w1 & 0xFFFF, emcy.w2 & 0xFFFF)
+        item = Emergency(self.position, emcy.error_code, emcy.error_reg, data, time.monotonic())
+        self._emergencies.append(item)
+        callback = self._segment.on_emergency
+        if callback is not None:
+            try:
+                callback(item)
+            except Exception:  # noqa: BLE001 - a user callback must not break the mailbox
+                log.exception('emergency callback failed')
+
+    def sdo_read(self, index: int, subindex: int, size: int = 0) -> bytes:
+        """SDO upload (expedited or segmented); ``size`` = room for objects > 256 bytes."""
+        return self._segment._mailbox(self, 'read 0x%04X:%d' % (index, subindex), index,
+                                      subindex, lambda: self._soem.sdo_read(index, subindex,
+                                                                            size))
+
+    def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        """SDO download; more than the mailbox holds is sent segmented."""
+        self._segment._mailbox(self, 'write 0x%04X:%d' % (index, subindex), index, subindex,
+                               lambda: self._soem.sdo_write(index, subindex, bytes(data)))
+
+    def poll_mailbox(self) -> None:
+        """Read the slave's mailbox once (collects a pending emergency)."""
+        self._segment._mailbox(self, 'mailbox poll', 0, 0, self._soem.mbx_receive)
+
+    def take_emergencies(self) -> list[Emergency]:
+        """Emergencies received since the last call, oldest first."""
+        items = []
+        while self._emergencies:
+            items.append(self._emergencies.popleft())
+        return items
+
+    # -- process data -----------------------------------------------------------------
+
+    @property
+    def output_size(self) -> int:
+        return len(self._outputs)
+
+    @property
+    def input_size(self) -> int:
+        return len(self._soem.input)
+
+    def set_outputs(self, data: bytes) -> None:
+        """Send ``data`` (RxPDO bytes) from the next cycle on; the length must match."""
+        if len(data) != len(self._outputs):
+            raise ValueError(f'slave {self.position} takes {len(self._outputs)} output bytes, '
+                             f'got {len(data)}')
+        with self._segment._io_lock:
+            self._outputs = bytes(data)
+
+    def outputs(self) -> bytes:
+        with self._segment._io_lock:
+            return self._outputs
+
+    def inputs(self) -> bytes:
+        """Return the inputs (TxPDO bytes) of the last cycle whose frame came back.
+
+        After a WKC drop the supervisor finds the slave that stopped answering
+        within ``supervise_s`` and marks it ``lost``; from then on its inputs and
+        ``inputs_time`` stay as they were, so a caller sees their age grow.
+        """
+        with self._segment._io_lock:
+            return self._inputs
+
+    @property
+    def inputs_time(self) -> float:
+        """Monotonic time the inputs were last refreshed (0: never)."""
+        return self._inputs_time
+
+    # -- state ---------------------------------------------------------------------------
+
+    def read_state(self) -> ALState:
+        """Read AL status and status code now (bounded by one frame timeout)."""
+        self._segment._read_states()
+        return self.state
+
+    def request_state(self, state: ALState, timeout: float | None = None) -> None:
+        """Request ``state`` for this slave; AlStateError with the AL status code if refused."""
+        self.target = state
+        self._segment._request(self, state, timeout)
+
+    def __repr__(self) -> str:
+        ident = self.identity
+        return (f'EthercatSlave({self.position}, {ident.name!r}, vendor 0x{ident.vendor_id:X}, '
+                f'product 0x{ident.product_code:X}, {self.state.name})')
+
+
+class EthercatSegment:
+    """One EtherCAT segment (one interface, one SOEM master, one process-data thread)."""
+
+    def __init__(self, settings: SegmentSettings,
+                 on_emergency: Callable[[Emergency], None] | None = None,
+                 on_slave_lost: Callable[[int], None] | None = None,
+                 on_slave_returned: Callable[[int], None] | None = None) -> None:
+        if settings.cycle_time_s <= 0:
+            raise ValueError('cycle_time_s must be positive')
+        self.settings = settings
+        self.on_emergency = on_emergency
+        self.on_slave_lost = on_slave_lost
+        self.on_slave_returned = on_slave_returned
+        self._master: Any = None
+        self._slaves: list[EthercatSlave] = []
+        self._io_lock = threading.Lock()
+        self._mailbox_lock = threading.Lock()       # SOEM's error list is not thread-safe
+        self._state_lock = threading.Lock()         # AL state reads/writes and recovery
+        self._stop = threading.Event()
+        self._trouble = threading.Event()
+        self._cycle_thread: threading.Thread | None = None
+        self._supervisor: threading.Thread | None = None
+        self._expected_wkc = 0
+        self._reset_stats()
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def open(self) -> list[SlaveIdentity]:
+        """Open the interface, enumerate the slaves (INIT -> PRE-OP), return their identities."""
+        if pysoem is None:
+            raise EthercatError('pysoem is not installed (pip install pysoem)')
+        if self._master is not None:
+            return [slave.identity for slave in self._slaves]
+        master = pysoem.Master()
+        master.always_release_gil = True            # never stall the process-data thread
+        timeout_us = int(self.settings.sdo_timeout_s * 1e6)
+        master.sdo_read_timeout = timeout_us
+        master.sdo_write_timeout = timeout_us
+        try:
+            if self.settings.namespace:
+                run_in_namespace(self.settings.namespace, master.open, self.settings.interface)
+            else:
+                master.open(self.settings.interface)
+        except (ConnectionError, OSError, TransportError) as exc:
+            raise EthercatError(f'cannot open {self.settings.interface}: {exc}') from exc
+        self._master = master
+        try:
+            found = master.config_init()
+            if found <= 0:
+                raise CommTimeout(f'no EtherCAT slave answered on {self.settings.interface}')
+            self._slaves = [EthercatSlave(self, position, soem)
+                            for position, soem in enumerate(master.slaves)]
+            self._await(ALState.PRE_OP, self._slaves, self.settings.state_timeout_s)
+        except BaseException:
+            self.close()
+            raise
+        return [slave.identity for slave in self._slaves]
+
+    @property
+    def slaves(self) -> tuple[EthercatSlave, ...]:
+        return tuple(self._slaves)
+
+    def slave(self, position: int) -> EthercatSlave:
+        return self._slaves[position]
+
+    def configure_pdos(self, position: int, config: PdoConfiguration) -> None:
+        """Write mapping objects and the SM2/SM3 PDO assignment of one slave (PRE-OP)."""
+        slave = self._slaves[position]
+        for index, entries in config.mappings.items():
+            slave.sdo_write(index, 0, b'\x00')              # CiA 301: count 0, entries, count
+            for sub, entry in enumerate(entries, 1):
+                slave.sdo_write(index, sub, struct.pack('<I', entry))
+            slave.sdo_write(index, 0, bytes([len(entries)]))
+        for assign, indices in ((0x1C12, config.rx), (0x1C13, config.tx)):
+            try:
+                slave.sdo_write(assign, 0, b'\x00')
+            except SdoAbortError as exc:
+                if exc.code not in (0x06010002, 0x08000022):
+                    raise
+                current = self._assignment(slave, assign)
+                if current != tuple(indices):
+                    raise EthercatError(
+                        f'slave {position} has a fixed assignment 0x{assign:04X} = '
+                        f'{[hex(i) for i in current]}; {[hex(i) for i in indices]} was '
+                        f'asked for') from exc
+                continue                                    # fixed and already right
+            for sub, index in enumerate(indices, 1):
+                slave.sdo_write(assign, sub, struct.pack('<H', index))
+            slave.sdo_write(assign, 0, bytes([len(indices)]))
+
+    @staticmethod
+    def _assignment(slave: EthercatSlave, assign: int) -> tuple[int, ...]:
+        count = slave.sdo_read(assign, 0)[0]
+        return tuple(struct.unpack('<H', slave.sdo_read(assign, sub)[:2])[0]
+                     for sub in range(1, count + 1))
+
+    def start(self) -> None:
+        """Map process data, set watchdog and sync, reach SAFE-OP and OP, run the cycle."""
+        master = self._require_open()
+        settings = self.settings
+        cycle_ns = int(settings.cycle_time_s * 1e9)
+        if settings.watchdog_s is not None:
+            for slave in self._slaves:
+                self._set_watchdog(slave, settings.watchdog_s)
+        if settings.sync_mode is SyncMode.DC:
+            if not master.config_dc():
+                raise EthercatError('DC sync requested but no slave has distributed clocks')
+            for slave in self._slaves:
+                slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
+        with self._mailbox_lock:
+            try:
+                master.config_map()                         # requests SAFE-OP
+            except pysoem.ConfigMapError as exc:
+                raise EthercatError(f'PDO mapping failed: {exc.error_list}') from exc
+        with self._io_lock:
+            for slave in self._slaves:
+                slave._outputs = bytes(len(slave._soem.output))
+                slave._inputs = bytes(len(slave._soem.input))
+        self._expected_wkc = master.expected_wkc
+        self._await(ALState.SAFE_OP, self._slaves, settings.state_timeout_s)
+        for slave in self._slaves:
+            slave.target = ALState.SAFE_OP
+        self._stop.clear()
+        self._reset_stats()
+        self._cycle_thread = threading.Thread(target=self._cycle, daemon=True,
+                                              name=f'ethercat-{settings.interface}')
+        self._cycle_thread.start()
+        self._supervisor = threading.Thread(target=self._supervise, daemon=True,
+                                            name=f'ethercat-supervisor-{settings.interface}')
+        self._supervisor.start()
+        # SAFE-OP -> OP once valid outputs flow (ETG.1000.6 6.4.1: "SO: master sends
+        # valid outputs"): the cycle is running now
+        self.request_state(ALState.OP)
+
+    def request_state(self, state: ALState, timeout: float | None = None) -> None:
+        """Request ``state`` for every slave; AlStateError (first failing slave) if refused."""
+        self._require_open()
+        errors = []
+        for slave in self._slaves:
+            slave.target = state
+            try:
+                self._request(slave, state, timeout)
+            except AlStateError as exc:
+                errors.append(exc)
+        if errors:
+            raise errors[0]
+
+    def close(self) -> None:
+        """Stop the threads, send every slave to INIT, close the interface (idempotent)."""
+        self._stop.set()
+        for thread in (self._cycle_thread, self._supervisor):
+            if thread is not None and thread is not threading.current_thread():
+                thread.join(2.0)
+        self._cycle_thread = self._supervisor = None
+        master, self._master = self._master, None
+        if master is None:
+            return
+        try:
+            if self._slaves:
+                master.state = ALState.INIT
+                master.write_state()
+        except Exception:  # noqa: BLE001 - best effort on the way out
+            log.debug('could not request INIT on close', exc_info=True)
+        master.close()
+
+    def __enter__(self) -> 'EthercatSegment':
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- statistics -------------------------------------------------------------------------
+
+    def _reset_stats(self) -> None:
+        self._cycles = self._missed = self._wkc_errors = self._lost_frames = 0
+        self._last_wkc = 0
+        self._jitter: deque[float] = deque(maxlen=100_000)
+        self._cpu = 0.0
+        self._started = time.monotonic()
+
+    def stats(self) -> CycleStats:
+        jitter = sorted(self._jitter)
+        return CycleStats(
+            cycles=self._cycles, missed_cycles=self._missed, wkc_errors=self._wkc_errors,
+            lost_frames=self._lost_frames, expected_wkc=self._expected_wkc,
+            last_wkc=self._last_wkc,
+            jitter_p50_s=statistics.median(jitter) if jitter else 0.0,
+            jitter_p99_s=jitter[int(0.99 * (len(jitter) - 1))] if jitter else 0.0,
+            jitter_max_s=jitter[-1] if jitter else 0.0,
+            cycle_cpu_s=self._cpu, elapsed_s=time.monotonic() - self._started)
+
+    # -- the process-data thread --------------------------------------------------------------
+
+    def _cycle(self) -> None:
+        master = self._master
+        settings = self.settings
+        period = settings.cycle_time_s
+        receive_us = max(200, int(period * 0.8e6))
+        if settings.realtime_priority:
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO,
+                                      os.sched_param(settings.realtime_priority))
+            except OSError as exc:
+                log.warning('no real-time priority for the EtherCAT cycle: %s', exc)
+        dc = settings.sync_mode is SyncMode.DC
+        cycle_ns = int(period * 1e9)
+        shift_ns = int(settings.dc_shift_s * 1e9)
+        slaves = self._slaves
+        cpu_start = time.thread_time()
+        next_time = time.monotonic()
+        while not self._stop.is_set():
+            delay = next_time - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            woke = time.monotonic()
+            self._jitter.append(woke - next_time)
+            with self._io_lock:
+                for slave in slaves:
+                    if slave._outputs:
+                        slave._soem.output = slave._outputs
+            master.send_processdata()
+            wkc = master.receive_processdata(receive_us)
+            self._cycles += 1
+            self._last_wkc = wkc
+            if wkc < 0:
+                self._lost_frames += 1
+                self._trouble.set()
+            else:
+                if wkc < self._expected_wkc:
+                    self._wkc_errors += 1
+                    self._trouble.set()
+                now = time.monotonic()
+                with self._io_lock:
+                    for slave in slaves:
+                        if not slave.lost:
+                            slave._inputs = slave._soem.input
+                            slave._inputs_time = now
+            next_time += period
+            if dc and wkc >= 0:
+                # keep the cycle start at a fixed phase of the DC reference time, so that
+                # frames arrive before SYNC0 (a proportional step, as SOEM's examples do)
+                phase = (master.dc_time - shift_ns) % cycle_ns
+                error = phase - cycle_ns if phase > cycle_ns // 2 else phase
+                next_time -= 0.1 * error / 1e9
+            late = time.monotonic() - next_time
+            if late > period:                       # overran whole slots: skip, count them
+                skipped = int(late // period)
+                self._missed += skipped
+                next_time += skipped * period
+            self._cpu = time.thread_time() - cpu_start
+
+    # -- the supervisor thread --------------------------------------------------------------------
+
+    def _supervise(self) -> None:
+        settings = self.settings
+        next_poll = time.monotonic()
+        while not self._stop.is_set():
+            troubled = self._trouble.wait(settings.supervise_s)
+            if self._stop.is_set():
+                return
+            if troubled or any(slave.lost for slave in self._slaves):
+                self._trouble.clear()
+                try:
+                    self._check_states()
+                except TransportError as exc:
+                    log.debug('state check failed: %s', exc)
+            if settings.mailbox_poll_s and time.monotonic() >= next_poll:
+                next_poll = time.monotonic() + settings.mailbox_poll_s
+                for slave in self._slaves:
+                    if slave.lost or slave.state is ALState.INIT:
+                        continue
+                    try:
+                        slave.poll_mailbox()
+                    except TransportError as exc:
+                        log.debug('mailbox poll of slave %d failed: %s', slave.position, exc)
+
+    def _check_states(self) -> None:
+        """SOEM's recovery sequence: re-enter the target state, find lost slaves again."""
+        self._read_states()
+        for slave in self._slaves:
+            target = slave.target
+            if slave.state is target and not slave.al_status & AL_ERROR_FLAG:
+                if slave.lost:
+                    self._mark_returned(slave)
+                continue
+            with self._state_lock:
+                soem = slave._soem
+                if slave.state is ALState.NONE:            # no answer: gone
+                    if not slave.lost:
+                        slave.lost = True
+                        log.warning('EtherCAT slave %d lost', slave.position)
+                        if self.on_slave_lost:
+                            self.on_slave_lost(slave.position)
+                    if self.settings.recover and soem.recover(timeout=3000) > 0:
+                        log.info('EtherCAT slave %d found again', slave.position)
+                        soem.reconfig(timeout=3000)
+                    continue
+                if slave.al_status & AL_ERROR_FLAG:        # acknowledge, then go on
+                    soem.state = (slave.al_status & AL_STATE_MASK) | AL_ERROR_FLAG
+                    soem.write_state()
+                if slave.state in (ALState.INIT, ALState.PRE_OP) and target >= ALState.SAFE_OP:
+                    if soem.reconfig(timeout=3000) < ALState.SAFE_OP:
+                        continue
+                soem.state = int(target)
+                soem.write_state()
+
+    def _mark_returned(self, slave: EthercatSlave) -> None:
+        slave.lost = False
+        log.info('EtherCAT slave %d is back in %s', slave.position, slave.state.name)
+        if self.on_slave_returned:
+            self.on_slave_returned(slave.position)
+
+    # -- helpers ----------------------------------------------------------------------------------
+
+    def _require_open(self) -> Any:
+        if self._master is None:
+            raise EthercatError('the EtherCAT segment is not open')
+        return self._master
+
+    def _read_states(self) -> None:
+        master = self._require_open()
+        with self._state_lock:
+            master.read_state()
+            for slave in self._slaves:
+                soem = slave._soem
+                slave.al_status = soem.state
+                slave.state = _state(soem.state)
+                slave.al_status_code = soem.al_status
+
+    def _request(self, slave: EthercatSlave, state: ALState, timeout: float | None) -> None:
+        self._require_open()
+        timeout = self.settings.state_timeout_s if timeout is None else timeout
+        with self._state_lock:
+            soem = slave._soem
+            # an unacknowledged error blocks every request upwards: acknowledge with it
+            soem.state = int(state) | (AL_ERROR_FLAG if slave.al_status & AL_ERROR_FLAG else 0)
+            soem.write_state()
+        self._await(state, [slave], timeout)
+
+    def _await(self, state: ALState, slaves: list[EthercatSlave], timeout: float) -> None:
+        """Wait until every slave reports ``state``; AlStateError with the code if not."""
+        deadline = time.monotonic() + timeout
+        pending = list(slaves)
+        error_since: dict[int, float] = {}
+        while True:
+            with self._state_lock:
+                for slave in list(pending):
+                    soem = slave._soem
+                    reached = soem.state_check(int(state), 1000)
+                    slave.al_status = soem.state
+                    slave.state = _state(soem.state)
+                    slave.al_status_code = soem.al_status
+                    if reached == state and not soem.state & AL_ERROR_FLAG:
+                        pending.remove(slave)
+                    elif soem.state & AL_ERROR_FLAG:
+                        # firmware may take a moment to take back an acknowledged error:
+                        # an error that stays is the slave's answer
+                        first = error_since.setdefault(slave.position, time.monotonic())
+                        if time.monotonic() - first > ERROR_SETTLE_S:
+                            raise AlStateError(slave.position, state, soem.state,
+                                               soem.al_status)
+            if not pending:
+                return
+            if time.monotonic() > deadline:
+                slave = pending[0]
+                if slave.al_status == 0:
+                    raise CommTimeout(f'slave {slave.position} did not answer while waiting '
+                                      f'for {state.name}')
+                raise AlStateError(slave.position, state, slave.al_status, slave.al_status_code)
+            time.sleep(0.002)
+
+    def _set_watchdog(self, slave: EthercatSlave, seconds: float) -> None:
+        with self._mailbox_lock, warnings.catch_warnings():
+            warnings.simplefilter('ignore')            # rounding to the divider's resolution
+            try:
+                slave._soem.set_watchdog('processdata', seconds * 1000.0)
+            except (AttributeError, pysoem.WkcError) as exc:
+                raise EthercatError(f'slave {slave.position}: SM watchdog of {seconds} s not '
+                                    f'set: {exc}') from exc
+
+    def _mailbox(self, slave: EthercatSlave, what: str, index: int, subindex: int,
+                 call: Callable[[], Any]) -> Any:
+        self._require_open()
+        with self._mailbox_lock:
+            try:
+                return call()
+            except pysoem.SdoError as exc:
+                raise SdoAbortError(slave.position, index, subindex, exc.abort_code) from exc
+            except pysoem.WkcError as exc:
+                raise CommTimeout(f'slave {slave.position}: no mailbox answer to {what} '
+                                  f'(WKC {exc.wkc})') from exc
+            except pysoem.MailboxError as exc:
+                raise EthercatError(f'slave {slave.position}: mailbox error {exc.error_code} '
+                                    f'({exc.desc}) on {what}') from exc
+            except pysoem.PacketError as exc:
+                raise BadFrame(f'slave {slave.position}: unexpected mailbox reply to {what} '
+                               f'(packet error {exc.error_code})') from exc
+            except pysoem.Emergency as exc:            # without a callback pysoem raises it
+                slave._on_emergency(exc)
+                return None
