@@ -28,7 +28,14 @@ def _open_fds() -> set[tuple[str, str]]:
 
 @pytest.fixture(scope='session', autouse=True)
 def _dds_warmed_up():
-    """Create DDS's process-wide sockets once, so no test is blamed for them."""
+    """Create the process-wide sockets and pipes once, so no test is blamed for them.
+
+    DDS keeps shared sockets after the first participant; multiprocessing starts
+    one resource tracker (a pipe) for the first spawned process (the simulated
+    EtherCAT segment runs in one).
+    """
+    import multiprocessing.resource_tracker
+    multiprocessing.resource_tracker.ensure_running()
     import rclpy
     from rclpy.context import Context
     context = Context()

@@ -15,6 +15,7 @@ import pytest
 from ethercat_support import pysoem
 from harness import wait_for
 from vfd_ros2.errors import CommTimeout, ProtocolException, TransportError
+from vfd_ros2.protocol.ethercat import ALState
 from vfd_ros2.sim.ethercat.catalog import BONENG_MH_EC, IMO_HD2_EC_TX508
 from vfd_ros2.transports.ethercat import (
     AlStateError,
@@ -25,7 +26,6 @@ from vfd_ros2.transports.ethercat import (
     SegmentSettings,
     SyncMode,
 )
-from vfd_ros2.transports.ethercat_codes import ALState
 
 pytest_plugins = ['ethercat_harness']
 

@@ -15,6 +15,7 @@ import pytest
 
 from ethercat_support import bring_to_op, cycle_until, exchange, pysoem
 from harness import wait_for
+from vfd_ros2.protocol.ethercat import ALState, MailboxType, Register
 from vfd_ros2.sim.ethercat.catalog import BONENG_MH_EC, IMO_HD2_EC_TX508
 from vfd_ros2.sim.ethercat.coe import CoeServer
 from vfd_ros2.sim.ethercat.drive import Cia402VelocityDrive, sii_data, sii_image
@@ -30,7 +31,6 @@ from vfd_ros2.sim.ethercat.frame import (
 from vfd_ros2.sim.ethercat.mailbox import MailboxServer, decode_mailbox, encode_mailbox
 from vfd_ros2.sim.ethercat.segment import Segment
 from vfd_ros2.sim.ethercat.sii import Category, build_image, categories, sii_checksum
-from vfd_ros2.transports.ethercat_codes import ALState, MailboxType, Register
 
 pytest_plugins = ['ethercat_harness']
 

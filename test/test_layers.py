@@ -18,8 +18,9 @@ ALLOWED: dict[str, set[str]] = {
     'drives': {'errors', 'protocol', 'profiles', 'transports'},
     'control': {'errors', 'protocol', 'profiles', 'transports', 'drives'},
     'ros': {'errors', 'protocol', 'profiles', 'transports', 'drives', 'control', 'msg', 'srv'},
-    # The simulated drives share the profiles and codecs; sim/node.py is a ROS node.
-    'sim': {'errors', 'protocol', 'profiles', 'ros', 'msg', 'srv'},
+    # The simulated drives share the profiles and codecs (and the test-segment plumbing
+    # of transports/netns.py); sim/node.py is a ROS node.
+    'sim': {'errors', 'protocol', 'profiles', 'transports', 'ros', 'msg', 'srv'},
     'apps': {'errors', 'protocol', 'profiles', 'transports', 'drives', 'control', 'ros', 'sim',
              'msg', 'srv'},
 }

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
-from .ethercat_codes import (
+from ..protocol.ethercat import (
     AL_ERROR_FLAG,
     AL_STATE_MASK,
     ALState,

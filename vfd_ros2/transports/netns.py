@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, TypeVar
 
 from ..errors import TransportError
-from .ethercat_codes import ETHERTYPE_ETHERCAT
+from ..protocol.ethercat import ETHERTYPE_ETHERCAT
 
 CLONE_NEWNET = 0x40000000
 NETNS_DIR = Path('/run/netns')

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from ...transports.ethercat_codes import ALState
+from ...protocol.ethercat import ALState
 
 
 @dataclass(frozen=True)

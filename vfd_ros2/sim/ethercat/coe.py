@@ -26,7 +26,7 @@ import struct
 from dataclasses import dataclass
 from typing import Callable
 
-from ...transports.ethercat_codes import CoeService, SdoAbortCode
+from ...protocol.ethercat import CoeService, SdoAbortCode
 
 COE_HEADER = struct.Struct('<H')
 SDO = struct.Struct('<BHB')            # command, index, subindex

@@ -1,7 +1,7 @@
 """A simulated CiA 402 velocity drive behind an ESC, described by plain data (``DriveSpec``).
 
 What it does, and from where:
-- CiA 402 device control (CiA 402-2 section 6.2) through ``vfd_ros2.cia402``:
+- CiA 402 device control (CiA 402-2 section 6.2) through ``vfd_ros2.protocol.cia402``:
   controlword 0x6040 -> state, statusword 0x6041 from the state (+ voltage
   enabled, remote, target reached); fault reset on the rising edge of bit 7.
 - Velocity in vl mode (6060 = 2: 0x6042 target, 0x6043 demand, 0x6044 actual,
@@ -25,8 +25,8 @@ import struct
 from dataclasses import dataclass, field
 from typing import Any
 
-from ...cia402 import STATUSWORD_OF, ControlBit, State, StatusBit, transition
-from ...transports.ethercat_codes import ALState, ALStatusCode, SdoAbortCode
+from ...protocol.cia402 import STATUSWORD_OF, ControlBit, State, StatusBit, transition
+from ...protocol.ethercat import ALState, ALStatusCode, SdoAbortCode
 from .application import Emergency, TransitionContext
 from .objects import Access, DataType, Entry, ObjectDictionary
 from .sii import PdoEntryInfo, PdoInfo, SiiData, SyncManagerConfig, SyncManagerType, build_image

@@ -38,7 +38,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from ...transports.ethercat_codes import (
+from ...protocol.ethercat import (
     AL_ERROR_FLAG,
     AL_STATE_MASK,
     FMMU_SIZE,

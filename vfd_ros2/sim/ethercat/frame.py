@@ -19,7 +19,7 @@ import enum
 import struct
 from dataclasses import dataclass, field
 
-from ...transports.ethercat_codes import ETHERTYPE_ETHERCAT
+from ...protocol.ethercat import ETHERTYPE_ETHERCAT
 
 ETHERNET_HEADER = struct.Struct('<6s6sH')          # EtherType is big endian: swapped below
 ECAT_HEADER = struct.Struct('<H')

@@ -15,7 +15,7 @@ import struct
 from dataclasses import dataclass
 from typing import Callable
 
-from ...transports.ethercat_codes import MailboxErrorCode, MailboxType
+from ...protocol.ethercat import MailboxErrorCode, MailboxType
 
 HEADER = struct.Struct('<HHBB')
 HEADER_SIZE = HEADER.size

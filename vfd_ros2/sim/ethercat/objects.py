@@ -13,7 +13,7 @@ import struct
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
-from ...transports.ethercat_codes import ALState, SdoAbortCode
+from ...protocol.ethercat import ALState, SdoAbortCode
 
 
 class DataType(enum.IntEnum):

@@ -29,7 +29,7 @@ import traceback
 from collections import deque
 from typing import Any, Sequence
 
-from ...transports.ethercat_codes import ETHERTYPE_ETHERCAT
+from ...protocol.ethercat import ETHERTYPE_ETHERCAT
 from ...transports.netns import VethLink, open_packet_socket, set_link_state
 from .drive import Cia402VelocityDrive, DriveSpec, sii_image
 from .esc import HOP_DELAY_NS, Esc
@@ -249,6 +249,7 @@ class SimulatedSegment:
                  start_timeout: float = 20.0) -> None:
         self.link = link
         self.specs = list(specs)
+        self._closed = False
         context = multiprocessing.get_context('spawn')
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve_in_process,
@@ -315,6 +316,9 @@ class SimulatedSegment:
 
     def close(self) -> None:
         """Stop the server process (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
         if self._process.is_alive():
             try:
                 self._conn.send(('stop', ()))
@@ -326,6 +330,8 @@ class SimulatedSegment:
                 self._process.terminate()
                 self._process.join(2.0)
         self._conn.close()
+        if not self._process.is_alive():
+            self._process.close()           # its sentinel pipe
 
     def __enter__(self) -> 'SimulatedSegment':
         return self

@@ -16,7 +16,7 @@ import enum
 import struct
 from dataclasses import dataclass, field
 
-from ...transports.ethercat_codes import COE_DETAIL_SDO, MAILBOX_PROTOCOL_COE
+from ...protocol.ethercat import COE_DETAIL_SDO, MAILBOX_PROTOCOL_COE
 
 
 class Category(enum.IntEnum):
