@@ -219,13 +219,18 @@ class Streamer:
 
 
 def bus_efficiency(profile_name: str, units: int, framing: Framing, window: float,
-                   stack: str = 'vfd_ros2') -> dict[str, Any]:
-    """Back-to-back command+status cycles on an emulated line vs the wire's limit."""
+                   stack: str = 'vfd_ros2', adapter_latency: float = 0.0) -> dict[str, Any]:
+    """Back-to-back command+status cycles on an emulated line vs the wire's limit.
+
+    ``adapter_latency`` emulates the master's USB adapter holding each reply that
+    long (an FTDI latency timer: 16 ms by default, 1 ms in low-latency mode).
+    """
     profile = load_profile(profile_name)
     setpoint = profile.parameter(profile.velocity.setpoint).address
     port = _port_path('eff')
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, framing.baudrate,
-                    framing.parity, framing.stopbits, emulate=True) as sim:
+                    framing.parity, framing.stopbits, emulate=True,
+                    adapter_latency=adapter_latency) as sim:
         wait_port(port)
         link = {'transport.type': 'modbus_rtu', 'transport.port': port,
                 'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
@@ -266,7 +271,66 @@ def bus_efficiency(profile_name: str, units: int, framing: Framing, window: floa
         'target': 0.95 if framing.baudrate <= 19200 else 0.90 if framing.baudrate == 115200
         else None,
         'gap_violations': stats['gap_violations'], 'line_errors': stats['crc_errors'],
+        'adapter_latency_ms': round(1000 * adapter_latency, 1),
     }
+
+
+# --- watchdog on a bus -------------------------------------------------------------------
+
+
+def watchdog_on_bus(profile_name: str, units: int, framing: Framing, trials: int,
+                    command_timeout: float = 0.5) -> dict[str, Any]:
+    """Measure when each drive receives its zero setpoint after commands stop (a Bus).
+
+    The target is the timeout plus one transaction: a tripped watchdog preempts
+    the bus cycle like a new command (it does not wait for the drive's turn).
+    """
+    profile = load_profile(profile_name)
+    setpoint = profile.parameter(profile.velocity.setpoint).address
+    port = _port_path('wdg')
+    delays: list[float] = []
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, framing.baudrate,
+                    framing.parity, framing.stopbits, emulate=True) as sim:
+        wait_port(port)
+        bus = Bus(parse_bus_config({
+            'bus': {'transport.type': 'modbus_rtu', 'transport.port': port,
+                    'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
+                    'transport.stopbits': framing.stopbits},
+            'drives': {f'd{u}': {'drive.profile': profile_name, 'transport.unit_id': u,
+                                 'auto_enable': True, 'command_timeout': command_timeout,
+                                 'drive_comm_timeout': DRIVE_COMM_TIMEOUT}
+                       for u in range(1, units + 1)}}))
+        controllers = list(bus.controllers.values())
+        bus.start()
+        try:
+            for trial in range(trials):
+                velocity = 1.0 + 0.1 * trial
+                wait_for(lambda v=velocity: [c.command_velocity(v) for c in controllers] and
+                         all(c.state.running and c.state.commanded_velocity == v
+                             for c in controllers), 30.0, 'all drives running')
+                time.sleep(0.3)               # a steady state, commands still streaming
+                for c in controllers:
+                    c.command_velocity(velocity)
+                last = time.monotonic()
+                time.sleep(command_timeout + 1.5)
+                zero: dict[int, float] = {}
+                for stamp, frame in sim.ask('received', last):
+                    if frame[1] == 6 and int.from_bytes(frame[2:4], 'big') == setpoint and \
+                            frame[4:6] == b'\0\0':
+                        # A broadcast (unit 0) reaches every drive at once.
+                        for unit in (range(1, units + 1) if frame[0] == 0 else (frame[0],)):
+                            zero.setdefault(unit, stamp)
+                delays += [zero[u] - last for u in sorted(zero)]
+        finally:
+            bus.shutdown()
+    transaction = framing.exchange_time(bytes(8), 8)
+    longest = framing.exchange_time(bytes(8), reply_size(3, profile.modbus.max_read_registers))
+    return {'profile': profile_name, 'drives': units, 'baudrate': framing.baudrate,
+            'trials': trials, 'command_timeout_s': command_timeout,
+            'stops_seen': len(delays), 'median_s': round(statistics.median(delays), 4),
+            'max_s': round(max(delays), 4),
+            # the write itself, after the longest exchange that may be on the wire
+            'target_s': round(command_timeout + longest + transaction, 4)}
 
 
 # --- 2. software floor ------------------------------------------------------------------

@@ -76,6 +76,33 @@ def render_table(results: dict[str, Any]) -> str:
                      'transaction of the cycle + 1 ms)\n\n' + _table(
                          ['link', 'commands/s', 'written/sent', 'median ms', 'p99 ms', 'max ms',
                           'target p99 ms', ''], rows))
+    rows = []
+    for r in results.get('adapters', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error'], '', ''])
+            continue
+        rows.append([f"{r['adapter_latency_ms']:g} ms", f"{r['baudrate']} {r['framing']}",
+                     _fmt(r['cycles_per_s'], 2), _fmt(r['theoretical_cycles_per_s'], 2)])
+    if rows:
+        parts.append('**3a. USB adapter latency** (boneng_am, 1 drive; the simulated line '
+                     "holds each reply for the adapter's latency timer: 16 ms = an FTDI "
+                     'adapter in its default mode, 1 ms = in low-latency mode, which '
+                     '`transport.low_latency` requests)\n\n' + _table(
+                         ['adapter latency', 'baud', 'cycles/s', 'wire max'], rows))
+    rows = []
+    for r in results.get('watchdog', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error'], '', '', '', ''])
+            continue
+        rows.append([f"{r['drives']} x {r['profile']} at {r['baudrate']}",
+                     f"{r['stops_seen']}/{r['drives'] * r['trials']}",
+                     _fmt(r['median_s'], 3), _fmt(r['max_s'], 3), _fmt(r['target_s'], 3),
+                     _verdict(r['max_s'], r['target_s'], False)])
+    if rows:
+        parts.append('**3b. Watchdog on a bus** (commands stop: last command → the zero '
+                     'setpoint at the simulator; target = command_timeout + the longest '
+                     'exchange in flight + the write)\n\n' + _table(
+                         ['bus', 'stops seen', 'median s', 'max s', 'target s', ''], rows))
     canopen = results.get('canopen')
     if canopen is not None:
         if 'skipped' in canopen:

@@ -82,11 +82,15 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
     if not quick:
         latency.insert(1, ('latency rtu 19200', lambda: cases.command_latency(
             'boneng_am', commands // 2, 'rtu', Framing(19200))))
+    adapters = [(f'adapter latency {ms} ms', lambda s=ms / 1000.0: cases.bus_efficiency(
+        'boneng_am', 1, Framing(115200), window, adapter_latency=s)) for ms in (16, 1)]
+    watchdog = [('watchdog 4 x 9600', lambda: cases.watchdog_on_bus(
+        'boneng_am', 4, Framing(9600), 2 if quick else 5))]
     cpu_window = 3.0 if quick else 10.0
     cpu = [(f'cpu x{units}', lambda u=units: cases.cpu_usage(
         'boneng_am', u, cpu_window, profile_with_pyspy=not quick)) for units in (1, 4)]
     return {'bus_efficiency': efficiency, 'software_floor': floor,
-            'command_latency': latency, 'cpu': cpu}
+            'command_latency': latency, 'adapters': adapters, 'watchdog': watchdog, 'cpu': cpu}
 
 
 def canopen_section(quick: bool) -> dict[str, Any]:

@@ -45,7 +45,8 @@ def child_main() -> None:
 
 
 def _serve(conn: Any, kind: str, profile: str, units: list[int], where: str,
-           baudrate: int, parity: str, stopbits: int, emulate: bool) -> None:
+           baudrate: int, parity: str, stopbits: int, emulate: bool,
+           adapter_latency: float = 0.0) -> None:
     from vfd_ros2.profiles import load_profile
     from vfd_ros2.sim.model import SimulatedDrive
 
@@ -54,7 +55,8 @@ def _serve(conn: Any, kind: str, profile: str, units: list[int], where: str,
     if kind == 'rtu':
         from vfd_ros2.sim.rtu_line import SimulatedRtuLine
         line: Any = SimulatedRtuLine(drives, where, baudrate=baudrate, parity=parity,
-                                     stopbits=stopbits, emulate_wire_time=emulate).start()
+                                     stopbits=stopbits, emulate_wire_time=emulate,
+                                     adapter_latency=adapter_latency).start()
         conn.send(('ready', where))
     else:
         from vfd_ros2.sim.tcp_server import SimulatedTcpServer
@@ -94,8 +96,9 @@ class SimProcess:
 
     def __init__(self, kind: str, profile: str, units: list[int], where: str = '',
                  baudrate: int = 115200, parity: str = 'N', stopbits: int = 1,
-                 emulate: bool = True) -> None:
-        self._args = (kind, profile, units, where, baudrate, parity, stopbits, emulate)
+                 emulate: bool = True, adapter_latency: float = 0.0) -> None:
+        self._args = (kind, profile, units, where, baudrate, parity, stopbits, emulate,
+                      adapter_latency)
         self._process: subprocess.Popen | None = None
         self._conn: _Pipe | None = None
         self.where: Any = None

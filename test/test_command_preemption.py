@@ -125,10 +125,11 @@ def test_a_tripped_watchdog_preempts_a_slow_bus(tmp_path):
 
         def zero_written() -> bool:
             for stamp, frame in list(line.received):
-                unit = frame[0]
-                if stamp > last_command and frame[1] == 6 and unit not in stopped_at and \
+                if stamp > last_command and frame[1] == 6 and \
                         int.from_bytes(frame[2:4], 'big') == setpoint and frame[4:6] == b'\0\0':
-                    stopped_at[unit] = stamp
+                    # unit 0: a broadcast, which every drive executes
+                    for unit in (range(1, 5) if frame[0] == 0 else (frame[0],)):
+                        stopped_at.setdefault(unit, stamp)
             return len(stopped_at) == 4
         deadline = time.monotonic() + 5.0
         while not zero_written():
@@ -137,7 +138,19 @@ def test_a_tripped_watchdog_preempts_a_slow_bus(tmp_path):
         done.set()
         latencies = sorted(stamp - last_command for stamp in stopped_at.values())
         assert latencies[0] > 0.5, latencies             # not before the timeout ...
-        assert latencies[-1] < 0.5 + 0.25, latencies     # ... and not a bus cycle after it
+        # ... and not a bus cycle after it: every drive tripped at once, so one broadcast
+        # frame stops them all (a read of 5 registers in flight + the write: ~60 ms).
+        assert latencies[-1] < 0.5 + 0.1, latencies
+        def broadcasts() -> list[bytes]:
+            return [frame for stamp, frame in list(line.received)
+                    if stamp > last_command and frame[0] == 0]
+        deadline = time.monotonic() + 2.0
+        while len(broadcasts()) < 2:
+            assert time.monotonic() < deadline, broadcasts()
+            time.sleep(0.01)
+        command = profile.parameter('P07.32').address
+        assert [int.from_bytes(frame[2:4], 'big') for frame in broadcasts()] == \
+            [setpoint, command]                       # zero setpoint, then the stop
     finally:
         bus.shutdown()
         line.stop()
@@ -180,4 +193,41 @@ def test_a_tripped_watchdog_wakes_an_idle_loop(tmp_path):
         assert 0.1 < stops[0] - last_command < 0.1 + 0.15
     finally:
         controller.shutdown()
+        line.stop()
+
+
+def test_one_silent_commander_never_broadcasts_a_stop_to_the_others(tmp_path):
+    """Only drive 1's commands stop: the others keep running, no unit-0 frame goes out."""
+    import time
+
+    from vfd_ros2.control.bus import Bus, parse_bus_config
+    from vfd_ros2.sim.model import SimulatedDrive
+    from vfd_ros2.sim.rtu_line import SimulatedRtuLine
+    profile = shipped_profile('boneng_am')
+    sims = [SimulatedDrive(profile, unit) for unit in (1, 2)]
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine(sims, port).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port},
+        'drives': {f'd{unit}': {'transport.unit_id': unit, 'auto_enable': True,
+                                'command_timeout': 0.2, 'drive_comm_timeout': 3.0}
+                   for unit in (1, 2)}}))
+    first, second = bus.controllers.values()
+    bus.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while not all(s.run_requested for s in sims):
+            assert time.monotonic() < deadline, 'drives did not start'
+            first.command_velocity(1.0)
+            second.command_velocity(1.0)
+            time.sleep(0.05)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:           # drive 1's commander is gone
+            second.command_velocity(1.0)
+            time.sleep(0.05)
+        assert not sims[0].run_requested and sims[1].run_requested
+        assert not any(frame[0] == 0 for _, frame in list(line.received))
+        assert bus.broadcast_stops == 0
+    finally:
+        bus.shutdown()
         line.stop()

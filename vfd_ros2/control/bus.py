@@ -9,6 +9,7 @@ the others; it alone goes offline.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -16,13 +17,15 @@ from typing import Any, Callable, Mapping
 
 import yaml
 
-from ..errors import ParameterError
+from ..errors import ParameterError, TransportError
 from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
 from .controller import DriveController
 from .factory import build_controller, build_transport
 from .loop import CycleLoop
 from .settings import SETTINGS
+
+log = logging.getLogger(__name__)
 
 #: settings that belong to the bus, not to one drive
 BUS_KEYS = ('control_rate',)
@@ -128,6 +131,8 @@ class Bus:
         self._lock = threading.Lock()
         self._window: tuple[float, float, int] = (clock(), 0.0, 0)
         self._connect_turn = 0
+        self._broadcast_for: tuple[float, ...] = ()
+        self.broadcast_stops = 0      # watchdog trips of every running drive, stopped at once
 
     def _addressing_interval(self) -> float:
         """Worst-case time between two requests to any drive of this bus.
@@ -150,14 +155,48 @@ class Bus:
         chosen = due[self._connect_turn % len(due)] if due else None
         self._connect_turn += 1
         for controller in controllers:          # commands first, for every drive ...
+            # A watchdog may expire mid-phase: then all drives at once, not in turn.
+            self._broadcast_stop_if_all_tripped()
             controller.command_phase(connect_allowed=controller is chosen)
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
     def preempt(self) -> None:
         """Write every drive's new command now, before the next status read."""
+        self._broadcast_stop_if_all_tripped()
         for controller in self.controllers.values():
             controller.preempt()
+
+    def _broadcast_stop_if_all_tripped(self) -> None:
+        """When every running drive's watchdog trips at once, stop them in one frame.
+
+        The planner died, say: on a slow shared line, one stop after the other
+        would reach the last drive several transactions late. A broadcast (unit 0,
+        unanswered) reaches all at once; each drive's own stop follows as usual
+        and is verified by its status. Only where every drive on the line shares
+        the same stop writes, so no drive gets another's meaning of a register.
+        """
+        transport = self.transport
+        if not getattr(transport, 'broadcasts', False) or len(self.controllers) < 2:
+            return
+        running = [c for c in self.controllers.values() if c.runs]
+        horizon = self._clock() + 0.002
+        if len(running) < 2 or not all(c.watchdog_due(horizon) for c in running):
+            return
+        plans = {c.drive.stop_broadcast() if hasattr(c.drive, 'stop_broadcast') else ()
+                 for c in self.controllers.values()}
+        if len(plans) != 1 or not (plan := plans.pop()):
+            return
+        key = tuple(sorted(c.preempt_at() or 0.0 for c in running))
+        if key == self._broadcast_for:
+            return          # this trip was broadcast already
+        self._broadcast_for = key
+        try:
+            for address, value in plan:
+                transport.broadcast_register(address, value)
+            self.broadcast_stops += 1
+        except TransportError as exc:
+            log.warning('bus %s: broadcast stop failed: %s', self.config.name, exc)
 
     def preempt_at(self) -> float | None:
         """Return the earliest moment a drive's command watchdog expires (see CycleLoop)."""

@@ -259,6 +259,19 @@ class DriveController:
             self.link.error = str(exc)
             self._cycle_ok = True
 
+    def watchdog_due(self, horizon: float) -> bool:
+        """Return whether the drive was told to run and its watchdog expires by ``horizon``."""
+        if not (self._run_written and self.link.online):
+            return False
+        with self._lock:
+            deadline = self._watchdog.deadline
+        return deadline is not None and deadline <= horizon
+
+    @property
+    def runs(self) -> bool:
+        """Return whether the last command written told the drive to run."""
+        return self._run_written and self.link.online
+
     def preempt_at(self) -> float | None:
         """When the loop must write the stop by itself: the command watchdog's expiry.
 

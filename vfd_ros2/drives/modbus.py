@@ -283,6 +283,19 @@ class ModbusDrive:
         self.write_raw(self._command, values[action])
         self.asserted_command = action
 
+    def stop_broadcast(self) -> tuple[tuple[int, int], ...]:
+        """Return the (address, value) writes that stop every drive of this profile at once.
+
+        The zero setpoint first (the motor ramps to 0 even before the command
+        changes), then the stop command; () where the setpoint is not a single
+        register written by 06 (a broadcast has no read-back).
+        """
+        zero, _ = self._native_setpoint(0.0)
+        if self._setpoint.register_count != 1 or 6 not in self.profile.modbus.function_codes:
+            return ()
+        return ((self._setpoint.address, zero & 0xFFFF),
+                (self._command.address, self.profile.control.values['stop']))
+
     def write_setpoint_parameter(self, code: str, raw: int) -> None:
         parameter = self.profile.parameter(code)
         persistence = self.profile.modbus.persistence

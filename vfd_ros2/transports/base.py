@@ -12,6 +12,8 @@ import abc
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping
 
+from ..errors import TransportError
+
 
 @dataclass(frozen=True)
 class TransportParameter:
@@ -137,3 +139,10 @@ class RegisterTransport(Transport):
     @abc.abstractmethod
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
         """Write consecutive holding registers in one request."""
+
+    #: can this link broadcast a write to every unit at once (unit 0, no reply)?
+    broadcasts: ClassVar[bool] = False
+
+    def broadcast_register(self, address: int, value: int) -> None:
+        """Write one register of every unit at once, unanswered (only where ``broadcasts``)."""
+        raise TransportError(f'{type(self).__name__} cannot broadcast')

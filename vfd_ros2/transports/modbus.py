@@ -200,6 +200,8 @@ class _RtuSettings:
                            'replies for their latency timer otherwise); refusal is reported'),
         TransportParameter('echo', False,
                            'the adapter hears its own transmission: read it back and check it'),
+        TransportParameter('broadcast_turnaround', 0.02,
+                           's of silence after a broadcast write, for the slaves to process it'),
     )
     port: str
     baudrate: int
@@ -222,7 +224,8 @@ class _RtuSettings:
                    frame_gap=gap if gap >= 0 else None,
                    late_reply_guard=guard if guard >= 0 else None,
                    low_latency=bool(settings.get('low_latency', True)),
-                   echo=bool(settings.get('echo', False)))
+                   echo=bool(settings.get('echo', False)),
+                   broadcast_turnaround=float(settings.get('broadcast_turnaround', 0.02)))
 
     @property
     def description(self) -> str:
@@ -256,8 +259,10 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  frame_gap: float | None = None, late_reply_guard: float | None = None,
-                 low_latency: bool = True, echo: bool = False) -> None:
+                 low_latency: bool = True, echo: bool = False,
+                 broadcast_turnaround: float = 0.02) -> None:
         super().__init__()
+        self.broadcast_turnaround = broadcast_turnaround
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
@@ -269,9 +274,25 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
                              low_latency=low_latency, echo=echo,
                              on_bytes=self._count_bytes, on_discard=self._count_discarded)
 
+    broadcasts = True
+
     @property
     def link_notes(self) -> tuple[str, ...]:
         return self._link.link_notes
+
+    def broadcast_register(self, address: int, value: int) -> None:
+        """Write one register of every slave at once (unit 0: executed by all, unanswered)."""
+        self.open()
+        request = WriteSingleRegisterRequest(address=address, registers=[value & 0xFFFF],
+                                             dev_id=0)
+        self.count(None, 'frames_sent')
+        try:
+            self._link.broadcast(request, self.broadcast_turnaround)
+        except LinkLost as exc:
+            self.count(None, 'connect_failures')
+            self.close()
+            raise TransportError(f'broadcast @ {address:#06x}: link lost '
+                                 f'({self.description}): {exc}') from exc
 
     @property
     def late_reply_guard(self) -> float:
@@ -325,7 +346,8 @@ class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
     def __init__(self, port: str, baudrate: int = 19200, parity: str = 'N',
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  frame_gap: float | None = None, late_reply_guard: float | None = None,
-                 low_latency: bool = True, echo: bool = False) -> None:
+                 low_latency: bool = True, echo: bool = False,
+                 broadcast_turnaround: float = 0.02) -> None:
         self.port = port
         self.baudrate = baudrate
         self.parity = parity

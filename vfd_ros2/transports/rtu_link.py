@@ -197,6 +197,28 @@ class RtuLink:
             self.close()
             raise LinkLost(str(exc)) from exc
 
+    def broadcast(self, request: ModbusPDU, turnaround: float) -> None:
+        """Send a write to unit 0 (every slave executes it, none answers).
+
+        The line is then kept quiet for ``turnaround`` (Modbus over Serial Line
+        V1.02, 2.4.1: the slaves need time to process a broadcast before the next
+        request). Raises LinkLost if the port failed.
+        """
+        if self._serial is None:
+            self.open()
+        frame = self._framer.buildFrame(request)
+        try:
+            self._wait_until_quiet(0)
+            sent_at = time.monotonic()
+            self._write(frame)
+            self._on_bytes(True, len(frame))
+            if self.echo:
+                self._check_echo(frame, sent_at)
+        except (OSError, serial.SerialException) as exc:
+            self.close()
+            raise LinkLost(str(exc)) from exc
+        self._quiet_from = sent_at + len(frame) * self.char_time + self.gap + turnaround
+
     # --- internals ----------------------------------------------------------------
 
     def _check_echo(self, frame: bytes, sent_at: float) -> None:
