@@ -179,7 +179,7 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
         'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
                              'gear_ratio': 10.0, 'auto_enable': True} for n in (1, 2)}})
     bus = Bus(config)
-    assert len(bus.transports) == 2            # one CAN handle per node, one thread
+    assert len(bus.transports) == 1            # one transport (one CAN channel), one thread
     bus.start()
     try:
         first, second = bus.controllers['n1'], bus.controllers['n2']

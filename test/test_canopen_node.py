@@ -43,7 +43,7 @@ def test_fault_emcy_and_reset(make_can_harness):
     fault = wait_for(lambda: next((f for f in reversed(wheel.faults) if f.active), None), 3.0,
                      'fault message')
     assert fault.code == 0x2310 and fault.name == entry.name and fault.known
-    assert fault.remedy == entry.remedy and fault.display == '2310h (8976)'
+    assert fault.remedy == entry.remedy and fault.display == '0x2310'
     assert not wheel.trigger('reset_fault').success          # cause still present
     sim.inject_fault(0)
     reply = wheel.trigger('reset_fault')
@@ -98,12 +98,16 @@ def test_heartbeat_loss_and_recovery(make_can_harness):
     sim.silent = True                                       # cable unplugged
     status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline')
     assert 'heartbeat' in status.stop_reason or status.timeouts > 0, status.stop_reason
-    # The drive's RPDO deadline (0x1400:05 = drive_comm_timeout) stops the motor by itself.
-    wait_for(lambda: sim.fault_code == 0x8250 and sim.speed_rpm == 0.0, 3.0, 'RPDO timeout')
+    # The drive hears neither the host heartbeat (0x1016:01) nor RPDOs (0x1400:05, both =
+    # drive_comm_timeout): whichever expires first, it stops the motor by itself.
+    wait_for(lambda: sim.fault_code in (0x8130, 0x8250) and sim.speed_rpm == 0.0, 3.0,
+             'heartbeat event or RPDO timeout')
+    code = sim.fault_code
     sim.silent = False
     status = wheel.wait_status(lambda s: s.online, 6.0, 'back online (same node process)')
     assert status.reconnects >= 1
-    wheel.wait_status(lambda s: s.fault and s.fault_code == 0x8250, 3.0, 'RPDO timeout fault')
+    wheel.wait_status(lambda s: s.fault and s.fault_code == code, 3.0, "the drive's fault")
+    assert wheel.faults[-1].display == f'0x{code:04X}'      # a CiA code, written as one
     assert sim.state is State.FAULT                          # never resumes by itself
     assert wheel.trigger('reset_fault').success
     wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,

@@ -264,6 +264,8 @@ class DriveController:
         self._action_errors = 0
         self._stopped_loop_errors = 0
         self.protection = self.plan_host_loss(0.0)
+        #: what the last connect could set (a drive may refuse part of the plan)
+        self.protection_applied: HostLossProtection | None = None
         #: called when a command should be written before the next cycle (set by the
         #: loop that runs this controller: its own, or a bus's)
         self.wake: Callable[[], None] | None = None
@@ -499,6 +501,9 @@ class DriveController:
             # A setting the drive refuses must not keep it offline: report and go on.
             log.error('%s: not applied at connect: %s', drive.hardware_id, problem)
         self._settings_refused = tuple(problems)
+        # A drive may refuse (part of) the planned protection and say what holds;
+        # Drive.protection_applied is optional (None: the plan holds as written).
+        self.protection_applied = getattr(drive, 'protection_applied', None)
         self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
@@ -798,7 +803,7 @@ class DriveController:
             comm_faults_cleared=self._comm_faults_cleared,
             loop_errors=self.loop_errors,
             last_error=self._last_error,
-            protection=self.protection,
+            protection=self.protection_applied or self.protection,
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
         )
         with self._lock:

@@ -412,6 +412,7 @@ class CanopenSpec:
     transmission_type: int = 255
     tpdo_event_timer_ms: int = 0            # 0x18xx:05 (0 = send on change only)
     rpdo_deadline: bool = False             # 0x14xx:05 supervises RPDO reception
+    heartbeat_consumer: bool = False        # 0x1016: the drive documents a heartbeat consumer
     expedited_only: bool = True
     emcy_fault: EmcyFault = EmcyFault.ERROR_CODE
     note: str = ''
@@ -684,6 +685,7 @@ def _canopen(data: Any, where: str, parameters: Mapping[str, Parameter]) -> Cano
         transmission_type=int(r.get('transmission_type', 255, kind=int)),
         tpdo_event_timer_ms=int(r.get('tpdo_event_timer_ms', 0, kind=int)),
         rpdo_deadline=bool(r.get('rpdo_deadline', False, kind=bool)),
+        heartbeat_consumer=bool(r.get('heartbeat_consumer', False, kind=bool)),
         expedited_only=bool(r.get('expedited_only', True, kind=bool)),
         emcy_fault=_enum(EmcyFault, r.get('emcy_fault', 'error_code'), f'{where}.emcy_fault'),
         note=str(r.get('note', '') or ''),
