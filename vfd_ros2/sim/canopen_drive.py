@@ -12,8 +12,8 @@ parameters' objects). What it does, over real CAN frames:
 - where the profile documents it (``heartbeat_consumer``), a heartbeat consumer
   (0x1016:01): monitoring starts with the host's first heartbeat; a heartbeat
   event sends EMCY 0x8130, takes the NMT reaction of 0x1029:01 (0: pre-operational,
-  1: none, 2: stopped) and, as a CiA 402 fault reaction, stops the motor in FAULT
-  (a command-word drive stops running). A profile without it has no 0x1016: the
+  1: none, 2: stopped) and, as a CiA 402 fault reaction, stops an energised motor in
+  FAULT (a command-word drive stops running). A profile without it has no 0x1016: the
   write is aborted with 0602 0000, as a real drive without the object does;
 - the CiA 402 state machine (``vfd_ros2.cia402``) or a manufacturer command word
   (Kinco 0x2A00), a speed ramp, EMCY on faults and on their reset; the error code
@@ -424,9 +424,10 @@ class SimulatedCanopenDrive:
             self.node.nmt.state = 'PRE-OPERATIONAL'
         elif behaviour == 2:
             self.node.nmt.state = 'STOPPED'
-        if self.cia402:
-            if self.state is not State.FAULT:
-                self.inject_fault(HEARTBEAT_EVENT, register=COMMUNICATION_REGISTER)
+        # The fault reaction stops an energised motor; an idle drive only reports it
+        # (so a host that restarts finds its idle drives without a fault).
+        if self.cia402 and self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            self.inject_fault(HEARTBEAT_EVENT, register=COMMUNICATION_REGISTER)
         else:
             self.run_requested = False
             self._emcy(HEARTBEAT_EVENT, COMMUNICATION_REGISTER)

@@ -38,7 +38,13 @@ from canopen import objectdictionary as od
 from canopen.emcy import EmcyError
 from canopen.nmt import NMT_STATES
 
-from ..errors import CommTimeout, ParameterError, ProtocolException, TransportError
+from ..errors import (
+    CommTimeout,
+    ParameterError,
+    ProfileError,
+    ProtocolException,
+    TransportError,
+)
 from ..profile import CanObject, Profile, ValueType
 from .base import Transport, TransportParameter
 
@@ -435,26 +441,24 @@ class CanopenTransport(Transport):
         node.sdo.RESPONSE_TIMEOUT = self.timeout
         node.sdo.MAX_RETRIES = 1
         node.nmt.add_heartbeat_callback(lambda state, link=link: self._on_heartbeat(link, state))
-        with channel.lock:
-            other = channel.network.nodes.get(unit)
-            if other is not None:
-                raise ParameterError(f'CANopen node id {unit} is already driven on '
-                                     f'{self.description} by another transport')
-            channel.network.add_node(node)
-        with self._lock:
+        with self._lock:              # nothing heard yet (before frames can arrive)
             link.last_heartbeat = link.nmt_state = None
             link.not_operational = 0
             link.booted = False
             link.supervise_timeout = 0.0
             link.bad_tpdo.clear()
-            link.node = node
+        with channel.lock:
+            if channel.network.nodes.get(unit) is not None:
+                raise ParameterError(f'CANopen node id {unit} is already driven on '
+                                     f'{self.description} by another transport')
+            channel.network.add_node(node)
+        link.node = node
 
     def close_node(self, unit: int) -> None:
         """Close node ``unit``; the transport leaves the channel with its last node."""
         link = self._links.get(unit)
-        if link is None or link.node is None:
-            return
-        self._close_link(link)
+        if link is not None and link.node is not None:
+            self._close_link(link)
         if all(other.node is None for other in self._links.values()):
             self.close()
 
@@ -530,6 +534,9 @@ class CanopenTransport(Transport):
         except (can.CanError, OSError, RuntimeError) as exc:
             self.count(unit, 'bad_frames')
             raise TransportError(f'{what} on node {unit} failed: {exc}') from exc
+        except (KeyError, od.ObjectDictionaryError) as exc:     # e.g. an EDS without it
+            raise ProfileError(f'{what} on node {unit}: not in its object dictionary: '
+                               f'{exc}') from exc
 
     def _send(self, unit: int, what: str, call: Callable[[], None]) -> None:
         """Send frames (NMT, RPDO); a bus that refuses becomes a TransportError."""
