@@ -4,7 +4,9 @@ Imports the CANopen transport and simulator at module level: if they are not
 there (or not importable), ``bench/run.py`` reports the section as skipped.
 python-can's ``virtual`` interface is in-process, so the simulated drives run in
 this process (one ticking thread); a listener on the same channel timestamps
-every frame the driver sends.
+every frame the driver sends. The drive nodes share one CAN channel (one
+python-can handle, one ``canopen.Network``, one host heartbeat): each row records
+the handles the drivers held and the host heartbeat frames seen.
 """
 
 from __future__ import annotations
@@ -24,10 +26,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
-import vfd_ros2.transports.canopen  # noqa: F401 - the transport under test must import
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.drive_node import DriveNode
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+from vfd_ros2.transports.canopen import open_channels
 
 from .cases import _percentile, wait_for
 
@@ -97,6 +99,9 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0) -> dic
             next_time += period
             time.sleep(max(0.0, next_time - time.monotonic()))
         elapsed = time.monotonic() - start
+        handles = sum(1 for c in open_channels() if c.key[1] == channel)
+        heartbeat_period = max((c.heartbeat_period for c in open_channels()
+                                if c.key[1] == channel), default=0.0)
         cycles = [c._cycle - c0 for c, c0 in zip(controllers, cycles0)]           # noqa: SLF001
         overruns = [c._loop.overruns - o0 for c, o0 in zip(controllers, overruns0)]  # noqa
         frames = list(recorder.frames)
@@ -111,6 +116,7 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0) -> dic
     # Latency: the first RPDO1 of node 1 (COB-ID 0x201) after a publish whose payload
     # differs from the one before it (the commanded value alternates every command).
     rpdo = [(t, data) for t, cob, data in frames if cob == 0x201]
+    heartbeats = [t for t, cob, _ in frames if cob == 0x77F]     # host node 127
     latencies = []
     cursor = 0
     for published, _ in sent:
@@ -127,6 +133,8 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0) -> dic
         'cycles_per_s': round(min(cycles) / elapsed, 1),
         'missed_cycles': max(0, round(expected - min(cycles))),
         'overruns': max(overruns), 'rpdo_frames': len(rpdo),
+        'can_handles': handles, 'host_heartbeat_ms': round(heartbeat_period * 1000, 1),
+        'host_heartbeat_frames': len(heartbeats),
         'latency_median_ms': round(statistics.median(latencies), 3) if latencies else None,
         'latency_p99_ms': round(_percentile(latencies, 0.99), 3) if latencies else None,
         'latency_max_ms': round(max(latencies), 3) if latencies else None,

@@ -202,7 +202,7 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
         'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
                              'gear_ratio': 10.0, 'auto_enable': True} for n in (1, 2)}})
     bus = Bus(config)
-    assert len(bus.transports) == 2            # one CAN handle per node, one thread
+    assert len(bus.transports) == 1            # one transport (one CAN channel), one thread
     bus.start()
     try:
         first, second = bus.controllers['n1'], bus.controllers['n2']
@@ -230,3 +230,63 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
     finally:
         bus.shutdown()
         with_bus.stop()
+
+
+def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_path,
+                                                                monkeypatch):
+    """bus_node with three CANopen drives: one python-can handle, per-drive counters."""
+    import can
+
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    from vfd_ros2.transports.canopen import open_channels
+    profile = load_profile('cia402_velocity')
+    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
+    sims = {n: SimulatedCanopenDrive(profile, n) for n in (1, 2, 3)}
+    line = SimulatedCanBus(list(sims.values()), channel).start()
+    opened = []
+    python_can_bus = can.Bus
+
+    def counting_bus(*args, **kwargs):
+        opened.append(kwargs.get('channel'))
+        return python_can_bus(*args, **kwargs)
+    monkeypatch.setattr(can, 'Bus', counting_bus)      # after the twins opened theirs
+    prefix = f'/c{uuid.uuid4().hex[:6]}'
+    config = tmp_path / 'can_bus.yaml'
+    config.write_text(yaml.safe_dump({
+        'bus': {'name': 'can0', 'transport.type': 'canopen', 'transport.interface': 'virtual',
+                'transport.channel': channel, 'control_rate': 50.0},
+        'drives': {f'n{n}': {'namespace': f'{prefix}/n{n}', 'drive.profile': 'cia402_velocity',
+                             'transport.unit_id': n, 'gear_ratio': 10.0, 'auto_enable': True,
+                             'reconnect_period': 0.2} for n in sims}}))
+    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
+        Parameter('config_file', value=str(config))])
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (bus, *bus.drive_nodes):
+        executor.add_node(node)
+    spin_in_background(executor, ros_context)
+    controllers = bus.bus.controllers
+    try:
+        wait_for(lambda: all(c.state.online for c in controllers.values()), 10.0, 'all online')
+        for c in controllers.values():
+            c.command_velocity(1.0)
+        assert opened == [channel]                  # one python-can handle for three drives
+        assert len(bus.bus.transports) == 1
+        mine = [c for c in open_channels() if c.key[1] == channel]
+        assert len(mine) == 1 and sorted(mine[0].network.nodes) == [1, 2, 3]
+        sims[3].silent = True                       # node 3 unplugged ...
+        wait_for(lambda: not controllers['n3'].state.online, 3.0, 'node 3 offline')
+        sims[3].silent = False                      # ... and back: the others kept the channel
+        wait_for(lambda: controllers['n3'].state.online and
+                 controllers['n3'].state.reconnects >= 1, 6.0, 'node 3 back')
+        assert opened == [channel]
+        states = {key: c.state for key, c in controllers.items()}
+        assert states['n3'].timeouts > 0           # each drive's counters are its own
+        assert states['n1'].timeouts == 0 and states['n2'].timeouts == 0
+        assert all(s.transactions > 0 for s in states.values())
+        assert sum(s.transactions for s in states.values()) <= \
+            bus.bus.link_stats().transactions
+    finally:
+        bus.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+        line.stop()
+    assert not [c for c in open_channels() if c.key[1] == channel]     # closed with the bus

@@ -11,18 +11,21 @@ import uuid
 from pathlib import Path
 
 import can
+import canopen
 import pytest
 import yaml
 
 from harness import wait_for
 from vfd_ros2.drives import drive_class_for
-from vfd_ros2.drives.canopen import CanopenDrive, pack_pdo, unpack_pdo
+from vfd_ros2.drives.canopen import CanopenDrive
 from vfd_ros2.errors import CommTimeout, ProtocolException
-from vfd_ros2.profiles import CanObject, ValueType, load_profile
+from vfd_ros2.profiles import ValueType, load_profile
 from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from vfd_ros2.transports import load_transport_class
-from vfd_ros2.transports.canopen import SDO_ABORT_CODES, CanopenTransport, Emcy, abort_text
+from vfd_ros2.transports.canopen import CanopenTransport, abort_text
+
+SDO_ABORT_CODES = canopen.SdoAbortedError.CODES      # the library's CiA 301 table
 
 VECTORS = Path(__file__).parent / 'vectors' / 'kinco_ec_frames.yaml'
 FRAMES = {f['id']: f for f in yaml.safe_load(VECTORS.read_text(encoding='utf-8'))['sdo_frames']}
@@ -145,9 +148,9 @@ def test_twin_answers_spec_abort_codes(channel, index, sub, value_type, code):
     try:
         with pytest.raises(ProtocolException) as error:
             if code == 0x06020000 or code == 0x06090011:
-                drive.transport.read_object(index, sub, value_type)
+                drive.transport.read_object(1, index, sub, value_type)
             else:
-                drive.transport.write_object(index, sub, value_type, 20000)
+                drive.transport.write_object(1, index, sub, value_type, 20000)
         assert error.value.code == code, str(error.value)
         assert error.value.text == abort_text(code)
     finally:
@@ -161,21 +164,31 @@ def test_no_reply_is_a_timeout_not_a_hang(channel):
         with pytest.raises(CommTimeout) as error:
             drive.get_parameter('0x3300')
         assert 'no SDO reply' in str(error.value)
-        assert drive.transport.stats.timeouts == 1
+        assert drive.transport.stats.timeouts == 1 and drive.stats.timeouts == 1
     finally:
         drive.close()
 
 
-def test_pdo_packing_little_endian_and_signed():
-    cw = CanObject(0x6040, 0, ValueType.UINT16)
-    v = CanObject(0x60FF, 0, ValueType.INT32)
-    data = pack_pdo([(cw, 0x000F), (v, -100)])
-    assert data == bytes.fromhex('0F 00 9C FF FF FF')
-    assert unpack_pdo([cw, v], data) == [0x000F, -100]
-    assert cw.mapping == 0x60400010 and v.mapping == 0x60FF0020
+def test_rpdo_frame_little_endian_and_signed(channel):
+    """RPDO1 as the library's PdoMap packs it: control word, then target velocity (int32)."""
+    sim_bus = SimulatedCanBus([SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)],
+                              channel).start()
+    sniffer = Sniffer(channel)
+    transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2)
+    drive = CanopenDrive(load_profile('cia402_velocity'), transport, 1,
+                         VelocityScaling(1.0, False, 3000.0, 2))
+    try:
+        drive.open()
+        drive.configure(drive.host_loss_plan(0.3, 0.02), apply_commissioning=True)
+        payload = transport.transmit(1, 1, [0x000F, -100])
+        assert payload == bytes.fromhex('0F 00 9C FF FF FF')
+        wait_for(lambda: (0x201, payload) in sniffer.frames, 2.0, 'RPDO1 on the bus')
+    finally:
+        drive.close()
+        sniffer.close()
+        sim_bus.stop()
 
 
-def test_emcy_decode_and_unknown_abort_code():
-    frame = Emcy.decode(bytes.fromhex('00 FF 01 08 00 00 00 00'), 0.0)
-    assert frame.code == 0xFF00 and frame.register == 1 and frame.data[0] == 8
+def test_unknown_abort_code_text():
     assert 'unknown SDO abort code 0x12345678' == abort_text(0x12345678)
+    assert abort_text(0x06020000) == SDO_ABORT_CODES[0x06020000]

@@ -5,12 +5,15 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import can
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
 from harness import wait_for
 from vfd_ros2.protocol.cia402 import State
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
+from vfd_ros2.transports.canopen import open_channels
 
 
 def test_command_status_and_watchdog(make_can_harness):
@@ -43,7 +46,7 @@ def test_fault_emcy_and_reset(make_can_harness):
     fault = wait_for(lambda: next((f for f in reversed(wheel.faults) if f.active), None), 3.0,
                      'fault message')
     assert fault.code == 0x2310 and fault.name == entry.name and fault.known
-    assert fault.remedy == entry.remedy and fault.display == '2310h (8976)'
+    assert fault.remedy == entry.remedy and fault.display == '0x2310'
     assert not wheel.trigger('reset_fault').success          # cause still present
     sim.inject_fault(0)
     reply = wheel.trigger('reset_fault')
@@ -98,12 +101,16 @@ def test_heartbeat_loss_and_recovery(make_can_harness):
     sim.silent = True                                       # cable unplugged
     status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline')
     assert 'heartbeat' in status.stop_reason or status.timeouts > 0, status.stop_reason
-    # The drive's RPDO deadline (0x1400:05 = drive_comm_timeout) stops the motor by itself.
-    wait_for(lambda: sim.fault_code == 0x8250 and sim.speed_rpm == 0.0, 3.0, 'RPDO timeout')
+    # The drive hears neither the host heartbeat (0x1016:01) nor RPDOs (0x1400:05, both =
+    # drive_comm_timeout): whichever expires first, it stops the motor by itself.
+    wait_for(lambda: sim.fault_code in (0x8130, 0x8250) and sim.speed_rpm == 0.0, 3.0,
+             'heartbeat event or RPDO timeout')
+    code = sim.fault_code
     sim.silent = False
     status = wheel.wait_status(lambda s: s.online, 6.0, 'back online (same node process)')
     assert status.reconnects >= 1
-    wheel.wait_status(lambda s: s.fault and s.fault_code == 0x8250, 3.0, 'RPDO timeout fault')
+    wheel.wait_status(lambda s: s.fault and s.fault_code == code, 3.0, "the drive's fault")
+    assert wheel.faults[-1].display == f'0x{code:04X}'      # a CiA code, written as one
     assert sim.state is State.FAULT                          # never resumes by itself
     assert wheel.trigger('reset_fault').success
     wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,
@@ -160,3 +167,145 @@ def test_kinco_over_canopen(make_can_harness, object_set):
     assert fault.code == 8 and fault.name == entry.name and fault.display == 'E008'
     reply = wheel.trigger('reset_fault')
     assert reply.success, reply.message
+
+
+def test_fault_follows_the_statusword_not_the_error_code(make_can_harness):
+    """0x603F names the fault; the statusword says whether there is one (it may keep a code)."""
+    h = make_can_harness(node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    sim.keeps_last_error = True                 # CiA 402 allows 0x603F to keep the last error
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running, 6.0, 'running')
+    sim.inject_fault(0x3210, latched=True)
+    status = wheel.wait_status(lambda s: s.fault and s.fault_code == 0x3210, 3.0, 'fault')
+    assert wheel.faults[-1].display == '0x3210' and wheel.faults[-1].name == \
+        h.profile.faults.table[0x3210].name
+    assert not wheel.trigger('reset_fault').success      # the cause is still there
+    sim.inject_fault(0)
+    reply = wheel.trigger('reset_fault')
+    assert reply.success, reply.message                 # the state machine left FAULT ...
+    got = wheel.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='0x603F'))
+    assert got.success and got.raw_value == 0x3210           # ... although 0x603F keeps its code
+    status = wheel.wait_status(lambda s: s.running and not s.fault, 6.0, 'running again')
+    wheel.stop_stream()                                 # watchdog: disable operation
+    status = wheel.wait_status(lambda s: dict(zip(s.status_word_names, s.status_words_raw))
+                               .get('cia402_state') == State.SWITCHED_ON, 3.0, 'switched on')
+    words = dict(zip(status.status_word_names, status.status_words_raw))
+    assert words['0x6041'] & 0x006F == 0x0023 and sim.error_code() == 0x3210
+    assert not status.fault and status.fault_code == 0 and status.state != 'fault'
+
+
+@pytest.mark.parametrize('profile, code, display', [('cia402_velocity', 0x2310, '0x2310'),
+                                                    ('kinco_ec', 8, 'E008')])
+def test_emcy_names_the_fault_when_the_code_object_is_empty(make_can_harness, profile, code,
+                                                           display):
+    """EMCY through the library's consumer gives the profile's fault texts."""
+    h = make_can_harness(profile=profile)
+    wheel, sim = h.wheels[1], h.sims[1]
+    sim.report_error_code = False               # 0x603F / 0x2B09 read 0: only EMCY says which
+    sim.inject_fault(code, latched=True)
+    fault = wait_for(lambda: next((f for f in reversed(wheel.faults) if f.active), None), 3.0,
+                     'fault from EMCY')
+    entry = h.profile.faults.table[code]
+    assert (fault.code, fault.display, fault.name, fault.remedy, fault.known) == \
+        (code, display, entry.name, entry.remedy, True)
+    sim.inject_fault(0)
+    assert wheel.trigger('reset_fault').success          # EMCY 0000 (error reset) follows
+    wheel.wait_status(lambda s: not s.fault, 3.0, 'cleared')
+
+
+def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
+    """One producer per channel (two drive nodes here), 0x700 + 127, state 05, periodic."""
+    h = make_can_harness(node_ids=(1, 2))
+    listener = can.Bus(interface='virtual', channel=h.channel)
+    try:
+        [channel] = [c for c in open_channels() if c.key[1] == h.channel]
+        period = channel.heartbeat_period
+        controller = h.wheels[1].node.controller
+        assert period == pytest.approx(min(max(controller.addressing_interval(), 0.01), 0.1),
+                                       abs=0.001)
+        stamps = []
+        deadline = 40 * period + 5.0
+        while len(stamps) < 40:
+            message = listener.recv(timeout=deadline)
+            assert message is not None, 'no host heartbeat'
+            if message.arbitration_id == 0x77F:
+                assert bytes(message.data) == b'\x05'   # NMT operational
+                stamps.append(message.timestamp)
+        gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+        median = sorted(gaps)[len(gaps) // 2]
+        assert median == pytest.approx(period, rel=0.25)       # one producer, not two
+        timeout = controller.state.protection.timeout          # what the drives consume
+        assert max(gaps) < timeout, (max(gaps), timeout)
+    finally:
+        listener.shutdown()
+
+
+def test_consumer_heartbeat_set_and_the_drive_stops_when_the_host_heartbeat_stops(
+        make_can_harness):
+    h = make_can_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
+    wheel, sim = h.wheels[1], h.sims[1]
+    assert sim.node.sdo[0x1016][1].raw == (127 << 16) | 300      # host node 127, 300 ms
+    status = wheel.status
+    assert status.host_loss_timeout == pytest.approx(0.3)
+    assert 'heartbeat consumer 0x1016:01' in status.host_loss_protection
+    assert 'RPDO1 deadline 0x1400:05' in status.host_loss_protection
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running, 6.0, 'running')
+    transport = wheel.node.controller.drive.transport
+    transport.channel.stop_heartbeat()          # the host's heartbeat dies; RPDOs go on
+    wait_for(lambda: sim.state is State.FAULT and sim.speed_rpm == 0.0, 3.0,
+             'the drive stops by itself')
+    assert sim.fault_code == 0x8130 and sim.heartbeat_events == 1
+    assert (0x8130, 0x11, bytes(5)) in sim.emcy_sent      # EMCY: heartbeat event
+    fault = wheel.wait_status(lambda s: s.fault and s.fault_code == 0x8130, 6.0, 'reported')
+    assert fault.fault_code == 0x8130
+    assert wheel.faults[-1].display == '0x8130'
+    assert not wheel.status.running
+    # The driver took the drive's NMT reaction (pre-operational) as a link loss and
+    # reconnected, which restarts the heartbeat: a reset then brings the wheel back.
+    wheel.wait_status(lambda s: s.online, 6.0, 'online')
+    assert wheel.trigger('reset_fault').success
+    wheel.wait_status(lambda s: s.running, 6.0, 'running again')
+
+
+def test_drive_stops_by_itself_when_the_driver_process_dies(make_can_harness):
+    """SIGKILL in-process: the loop ends mid-cycle (nothing written) and the socket closes."""
+    h = make_can_harness(node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                      'running')
+    controller = wheel.node.controller
+    transport = controller.drive.transport
+    try:
+        controller._loop._finish = lambda: None    # noqa: SLF001 - a killed process writes no stop
+        controller.shutdown()
+        transport.channel.network.bus.shutdown()   # the OS closes its CAN socket (heartbeat too)
+        wait_for(lambda: sim.state is State.FAULT and sim.speed_rpm == 0.0, 3.0,
+                 'the drive stops by itself')
+        assert sim.fault_code in (0x8130, 0x8250)  # heartbeat event or RPDO timeout
+    finally:
+        transport.close()
+
+
+def test_kinco_refuses_the_consumer_heartbeat_and_diagnostics_warn(make_can_harness):
+    """The Kinco EC documents no 0x1016 (manual L970): its twin aborts the write."""
+    h = make_can_harness(profile='kinco_ec', node_parameters={'diagnostics_rate': 5.0})
+    wheel, sim = h.wheels[1], h.sims[1]
+    diagnostics: list[DiagnosticArray] = []
+    h.tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 10)
+    status = wheel.wait_status(lambda s: s.host_loss_protection.startswith('none'), 3.0,
+                               'no drive-side protection')
+    assert status.host_loss_timeout == 0.0
+    assert '0x1016:01' in status.host_loss_protection and \
+        'SDO abort 0x06020000' in status.host_loss_protection
+    assert 0x1016 not in sim.node.object_dictionary
+    warn = wait_for(lambda: next((st for d in diagnostics for st in d.status
+                                  if st.hardware_id == status.hardware_id and
+                                  st.level == DiagnosticStatus.WARN), None), 3.0,
+                    'diagnostics WARN')
+    assert 'no drive-side host-loss protection' in warn.message
+    values = {kv.key: kv.value for kv in warn.values}
+    assert values['host-loss protection'].startswith('none')

@@ -100,10 +100,10 @@ def load_bus_config(path: str) -> BusConfig:
 class Bus:
     """One link, several drive controllers, one thread.
 
-    Register transports (Modbus) are one port shared by every drive. A transport
-    that addresses one device per handle (``shared_by_drives = False``, e.g.
-    CANopen: one python-can handle per node on the same interface) gets one
-    handle per drive, still served by this one thread and process.
+    A transport is normally one link shared by every drive (a serial port, a CAN
+    channel). A transport that addresses one device per handle
+    (``shared_by_drives = False``) gets one handle per drive, still served by
+    this one thread and process.
     """
 
     def __init__(self, config: BusConfig, clock: Callable[[], float] = time.monotonic) -> None:

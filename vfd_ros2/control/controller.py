@@ -107,6 +107,8 @@ class DriveController:
         self._comm_fault_grace_until = -math.inf
         self._comm_faults_cleared = 0
         self.protection = self.plan_host_loss(0.0)
+        #: what the last connect could set (a drive may refuse part of the plan)
+        self.protection_applied: HostLossProtection | None = None
         #: asks the loop running this controller (its own, or a bus's) to write a
         #: new command before the next cycle
         self.request_preempt: Callable[[], None] | None = None
@@ -394,6 +396,9 @@ class DriveController:
                         'requested)', drive.hardware_id, self.protection.describe(),
                         self.config.drive_comm_timeout)
         self._settings_refused = tuple(problems)
+        # A drive may refuse (part of) the planned protection and say what holds;
+        # Drive.protection_applied is optional (None: the plan holds as written).
+        self.protection_applied = getattr(drive, 'protection_applied', None)
         self._written_setpoints.clear()   # re-send auxiliary setpoints after a reconnect
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
@@ -510,7 +515,7 @@ class DriveController:
             comm_faults_cleared=self._comm_faults_cleared,
             loop_errors=self.loop_errors,
             link_error=self.link.error,
-            protection=self.protection,
+            protection=self.protection_applied or self.protection,
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
             link_notes=self.drive.transport.link_notes,
         )

@@ -179,7 +179,12 @@ class Drive(Protocol):
 
     def configure(self, protection: HostLossProtection,
                   apply_commissioning: bool) -> list[str]:
-        """Connect-time writes; returns the problems that did not stop the connect."""
+        """Connect-time writes; returns the problems that did not stop the connect.
+
+        A drive may also set ``protection_applied`` (a HostLossProtection) to what
+        it could set of ``protection``: the controller reports that one (optional;
+        CanopenDrive does, when the drive aborts 0x1016 or 0x1400:05).
+        """
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None: ...

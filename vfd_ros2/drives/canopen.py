@@ -1,16 +1,21 @@
 """Drive verbs over CANopen: a profile's ``canopen`` section plus a ``CanopenTransport``.
 
-Implements the ``vfd_ros2.drives.modbus.Drive`` protocol, so the controller and the node
+Implements the ``vfd_ros2.drives.base.Drive`` protocol, so the controller and the node
 are the same as for Modbus. At connect everything is set up over SDO (PDO
-mappings and transmission types, heartbeat, mode of operation, command source);
-afterwards each control cycle sends one RPDO (control word + target velocity)
-and each poll decodes the TPDOs the drive sent by itself: no SDO per cycle.
+mappings and transmission types, heartbeat, the drive-side protection against
+host death, mode of operation, command source); afterwards each control cycle
+sends one RPDO (control word + target velocity) and each poll decodes the TPDOs
+the drive sent by itself: no SDO per cycle.
 
 Two control styles, chosen by the profile's object set:
 - ``cia402``: the CiA 402 state machine (``vfd_ros2.protocol.cia402``), walked one verified
   transition per cycle; the target velocity stays 0 until the drive reports
   Operation Enabled; fault reset is a rising edge of bit 7;
 - ``command_word``: a manufacturer command word (Kinco 0x2A00: 0x07 run, ...).
+
+The fault state follows the drive's status (CiA 402: the FAULT states of the
+statusword; otherwise the profile's ``fault`` flag); the fault code object
+(0x603F, ...) and EMCY only say which fault it is.
 """
 
 from __future__ import annotations
@@ -18,7 +23,9 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any, Callable, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Iterable, Mapping
+
+from canopen.emcy import EmcyError
 
 from ..errors import ParameterError, ProfileError, ProtocolException, TransportError
 from ..profiles import (
@@ -27,6 +34,7 @@ from ..profiles import (
     ControlStyle,
     EmcyFault,
     FaultInfo,
+    FaultSpec,
     Parameter,
     Profile,
     StopAction,
@@ -36,38 +44,47 @@ from ..profiles import (
 from ..protocol.cia402 import Command, Goal, State, StatusBit, decode_state, next_command
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter, TransportStats
-from ..transports.canopen import CanopenTransport, NmtCommand, NmtState
+from ..transports.canopen import CanopenTransport, ObjectEntry
 from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading, check_write
 
 log = logging.getLogger(__name__)
 
 #: the CiA 301 generic error code, used when a drive reports FAULT without a code
 GENERIC_ERROR = 0x1000
-PDO_DISABLED = 0x80000000
+#: CiA 301 objects of the drive-side protection against host death
+HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
+RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
 
 
-def pack_pdo(items: list[tuple[CanObject, int]]) -> bytes:
-    """Little-endian PDO payload of (object, raw value) pairs in mapping order."""
-    value, shift = 0, 0
-    for obj, raw in items:
-        bits = obj.type.bits
-        value |= (raw & ((1 << bits) - 1)) << shift
-        shift += bits
-    return value.to_bytes((shift + 7) // 8, 'little')
+def cia_fault(code: int, register: int | None = None) -> FaultInfo:
+    """Describe a CiA 301 error code no profile table knows: ``0x8130`` and its class."""
+    text = EmcyError(code, register or 0, b'', 0.0).get_desc() or 'Unknown'
+    where = f', error register 0x{register:02X}' if register is not None else ''
+    return FaultInfo(code, 0, f'0x{code:04X}', f'{text} error (CiA 301 class)',
+                     f'CiA 301 error code 0x{code:04X}{where}', 'see the drive manual',
+                     known=False)
 
 
-def unpack_pdo(objects: list[CanObject], data: bytes) -> list[int]:
-    """Raw (sign-decoded) values of ``objects`` from a PDO payload."""
-    value = int.from_bytes(data, 'little')
-    out, shift = [], 0
-    for obj in objects:
-        bits = obj.type.bits
-        raw = (value >> shift) & ((1 << bits) - 1)
-        if obj.type.signed and raw >= 1 << (bits - 1):
-            raw -= 1 << bits
-        out.append(raw)
-        shift += bits
-    return out
+def _abort(exc: ProtocolException) -> str:
+    return f'SDO abort 0x{exc.code:08X}: {exc.text}'
+
+
+def decode_fault(faulted: bool, code: int, emcy: FaultInfo, faults: FaultSpec,
+                 cia_codes: bool) -> FaultInfo:
+    """Return the active fault: only while the drive's status says it is faulted.
+
+    ``code`` (0x603F or the profile's fault-code object) names the fault; a drive
+    may keep its last error there after a reset, so a code alone is no fault.
+    Without a code the last active EMCY names it, else the CiA 301 generic error.
+    ``cia_codes``: the profile's fault table holds CiA error codes (shown 0x....).
+    """
+    if not faulted:
+        return NO_FAULT
+    if code:
+        return describe_fault(faults, code)
+    if emcy.active:
+        return emcy
+    return describe_fault(faults, GENERIC_ERROR) if cia_codes else cia_fault(GENERIC_ERROR)
 
 
 class CanopenDrive:
@@ -96,9 +113,11 @@ class CanopenDrive:
             raise ProfileError(f'profile {profile.name} has no canopen section')
         if not isinstance(transport, CanopenTransport):
             raise ParameterError('CanopenDrive needs a CanopenTransport')
-        transport.attach(unit_id)
         self.profile = profile
         self.transport = transport
+        # The transport leaves the channel with its last open node, so a drive that
+        # shares it (bus_node) needs no special close; kept for build_controller.
+        self.owns_transport = owns_transport
         self.unit_id = unit_id
         self.scaling = scaling
         self.spec = profile.canopen
@@ -110,9 +129,15 @@ class CanopenDrive:
             self.objects.target_velocity.scale
         self.transition_timeout = float(values['transition_timeout'])
         self.tpdo_layout = self._plan_tpdos()
+        mapped = [self.objects.controlword, self.objects.target_velocity,
+                  self.objects.statusword, *self.objects.monitor.values()]
+        transport.attach(unit_id, entries(mapped), self.spec.rpdos, self.spec.tpdos)
         self.last_setpoint_raw = 0
         self.state: State | None = None
         self.stuck = ''                      # why the drive does not reach the wanted state
+        #: the host-loss protection configure() could set (None: not connected yet)
+        self.protection_applied: HostLossProtection | None = None
+        self._host_period = transport.host_heartbeat_period(0.0)
         self._configured = False
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
@@ -143,14 +168,14 @@ class CanopenDrive:
 
     @property
     def stats(self) -> TransportStats:
-        return self.transport.stats
+        return self.transport.stats_for(self.unit_id)
 
     def open(self) -> None:
-        self.transport.open()
+        self.transport.open_node(self.unit_id)
 
     def close(self) -> None:
         self._configured = False
-        self.transport.close()
+        self.transport.close_node(self.unit_id)
 
     # --- timing (an RPDO per cycle; SDO only at connect and for services) ---------------
 
@@ -164,19 +189,36 @@ class CanopenDrive:
         return 4 * self.transport.exchange_seconds(8, 8)     # SDO request and reply frames
 
     def host_loss_plan(self, requested: float, interval: float) -> HostLossProtection:
-        """RPDO deadline monitoring (0x1400:05) where the profile has it."""
-        if not self.spec.rpdo_deadline:
-            return HostLossProtection(requested=requested, note=(
-                f'{self.profile.name} documents no RPDO deadline over CANopen: only the host '
-                'watchdog stops the motor, not a dead host'))
+        """Plan the drive's own stop when the host dies (no I/O).
+
+        The host heartbeat is produced every ``interval`` (the control period, 10..100
+        ms, or transport.host_heartbeat_ms); the drive consumes it (0x1016:01) and,
+        where the profile has it, supervises RPDO1 (0x1400:05). One timeout serves
+        both: ``requested``, raised to twice the slower of the two periods plus the
+        host's jitter, in whole ms. configure() tries it and reports what the drive
+        refused.
+        """
+        period = self.transport.host_heartbeat_period(interval)
+        self._host_period = period
         if requested == 0:
             return HostLossProtection(requested=0.0, note='off, as drive_comm_timeout 0 asks')
-        minimum = 2 * interval + HOST_LOSS_JITTER
-        value = max(requested, minimum)
-        note = '' if value == requested else (
-            f'raised from {requested:g} s: the RPDO is sent every {interval * 1000:.0f} ms')
-        value = min(math.ceil(value * 1000) / 1000, 65.535)
-        return HostLossProtection('RPDO1 deadline 0x1400:05', value, requested, note)
+        minimum = 2 * max(period, interval) + HOST_LOSS_JITTER
+        value = min(math.ceil(max(requested, minimum) * 1000 - 1e-6) / 1000, 65.535)
+        notes = []
+        if value > requested + 1e-9:
+            notes.append(f'raised from {requested:g} s: the host heartbeat and the RPDO come '
+                         f'every {max(period, interval) * 1000:.0f} ms')
+        if not self.spec.heartbeat_consumer:
+            notes.append(f'{self.profile.name} documents no heartbeat consumer (0x1016): tried '
+                         'at connect')
+        mechanisms = [self._consumer_text(period)]
+        if self.spec.rpdo_deadline:
+            mechanisms.append('RPDO1 deadline 0x1400:05')
+        return HostLossProtection(' + '.join(mechanisms), value, requested, '; '.join(notes))
+
+    def _consumer_text(self, period: float) -> str:
+        return (f'heartbeat consumer 0x1016:01 (host node {self.transport.host_node_id}, '
+                f'heartbeat every {period * 1000:.0f} ms)')
 
     def forget_state(self) -> None:
         self._configured = False
@@ -188,50 +230,31 @@ class CanopenDrive:
         self.stuck = ''
 
     def _write(self, obj: CanObject, raw: int) -> None:
-        self.transport.write_object(obj.index, obj.subindex, obj.type, raw)
+        self.transport.write_object(self.unit_id, obj.index, obj.subindex, obj.type, raw)
 
     def _read(self, obj: CanObject) -> int:
-        return self.transport.read_object(obj.index, obj.subindex, obj.type)
+        return self.transport.read_object(self.unit_id, obj.index, obj.subindex, obj.type)
 
     def configure(self, protection: HostLossProtection,
                   apply_commissioning: bool) -> list[str]:
-        """Map the PDOs, set heartbeat and mode over SDO, then start the node (NMT)."""
-        t = self.transport
-        node = self.unit_id
-        spec = self.spec
+        """Map the PDOs, set heartbeats, protection and mode over SDO, then start the node."""
+        t, unit, spec = self.transport, self.unit_id, self.spec
         problems: list[str] = []
-        u8, u16, u32 = ValueType.UINT8, ValueType.UINT16, ValueType.UINT32
-        t.nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
+        t.nmt(unit, 'PRE-OPERATIONAL')
         heartbeat = t.heartbeat_ms or spec.heartbeat_ms
-        t.write_object(0x1017, 0, u16, heartbeat)
-        # RPDO1: control word + target velocity; the others off.
+        t.write_object(unit, 0x1017, 0, ValueType.UINT16, heartbeat)
+        # RPDO1: control word + target velocity; TPDO1..: the monitored objects; the
+        # others off. The library's PdoMap writes the mapping and subscribes the TPDOs.
         rpdo = [self.objects.controlword, self.objects.target_velocity]
-        for number in range(spec.rpdos):
-            comm, mapping, cob = 0x1400 + number, 0x1600 + number, 0x200 + 0x100 * number + node
-            t.write_object(comm, 1, u32, PDO_DISABLED | cob)
-            if number > 0:
-                continue
-            t.write_object(comm, 2, u8, spec.transmission_type)
-            t.write_object(mapping, 0, u8, 0)
-            for sub, obj in enumerate(rpdo, 1):
-                t.write_object(mapping, sub, u32, obj.mapping)
-            t.write_object(mapping, 0, u8, len(rpdo))
-            if spec.rpdo_deadline:
-                t.write_object(comm, 5, u16, min(round(protection.timeout * 1000), 0xFFFF))
-            t.write_object(comm, 1, u32, cob)
-        for number in range(spec.tpdos):
-            comm, mapping, cob = 0x1800 + number, 0x1A00 + number, 0x180 + 0x100 * number + node
-            t.write_object(comm, 1, u32, PDO_DISABLED | cob)
-            if number >= len(self.tpdo_layout):
-                continue
-            t.write_object(comm, 2, u8, spec.transmission_type)
-            if spec.tpdo_event_timer_ms:
-                t.write_object(comm, 5, u16, spec.tpdo_event_timer_ms)
-            t.write_object(mapping, 0, u8, 0)
-            for sub, (_, obj) in enumerate(self.tpdo_layout[number], 1):
-                t.write_object(mapping, sub, u32, obj.mapping)
-            t.write_object(mapping, 0, u8, len(self.tpdo_layout[number]))
-            t.write_object(comm, 1, u32, cob)
+        for number in range(1, spec.rpdos + 1):
+            t.map_pdo(unit, 'rpdo', number, entries(rpdo) if number == 1 else [],
+                      spec.transmission_type)
+        for number in range(1, spec.tpdos + 1):
+            group = self.tpdo_layout[number - 1] if number <= len(self.tpdo_layout) else []
+            t.map_pdo(unit, 'tpdo', number, entries(obj for _, obj in group),
+                      spec.transmission_type,
+                      spec.tpdo_event_timer_ms)
+        self.protection_applied = self._protect(protection, problems)
         if self.objects.mode_of_operation is not None:
             self._write(self.objects.mode_of_operation, self.objects.mode_value)
         if apply_commissioning:
@@ -240,14 +263,64 @@ class CanopenDrive:
             for role, obj in group:
                 self._values[role] = self._read(obj)
         self._update_state()
-        t.nmt(NmtCommand.START)
+        t.nmt(unit, 'OPERATIONAL')
         timeout = t.heartbeat_timeout or heartbeat * spec.heartbeat_timeout_factor / 1000.0
         if heartbeat <= 0:
             problems.append('heartbeat is off (heartbeat_ms 0): link loss is not detected')
             timeout = 0.0
-        t.supervise(timeout)
+        t.supervise(unit, timeout)
         self._configured = True
         return problems
+
+    def _protect(self, protection: HostLossProtection, problems: list[str]) -> HostLossProtection:
+        """Produce the host heartbeat and set what ``protection`` plans; return what holds.
+
+        A write the drive aborts is reported in ``problems`` and dropped from the
+        result: with nothing left, the result says so (diagnostics WARN).
+        """
+        t, unit = self.transport, self.unit_id
+        u16, u32 = ValueType.UINT16, ValueType.UINT32
+        t.produce_heartbeat(self._host_period)
+        if not protection.active:
+            # Off: clear what an earlier session may have left (a drive without the
+            # objects refuses, which is fine).
+            for (index, sub), value_type in ((HEARTBEAT_CONSUMER, u32), (RPDO1_DEADLINE, u16)):
+                if index == RPDO1_DEADLINE[0] and not self.spec.rpdo_deadline:
+                    continue
+                try:
+                    t.write_object(unit, index, sub, value_type, 0)
+                except ProtocolException:
+                    pass
+            return protection
+        ms = min(round(protection.timeout * 1000), 0xFFFF)
+        held, refused = [], []
+        consumer = (t.host_node_id << 16) | ms
+        try:
+            t.write_object(unit, *HEARTBEAT_CONSUMER, u32, consumer)
+            readback = t.read_object(unit, *HEARTBEAT_CONSUMER, u32)
+            if readback == consumer:
+                held.append(self._consumer_text(self._host_period))
+            else:
+                refused.append(f'heartbeat consumer 0x1016:01 = 0x{consumer:08X} reads back '
+                               f'0x{readback:08X}')
+        except ProtocolException as exc:
+            refused.append(f'the drive refused the heartbeat consumer 0x1016:01 ({_abort(exc)})')
+        if self.spec.rpdo_deadline:
+            try:
+                t.write_object(unit, *RPDO1_DEADLINE, u16, ms)
+                held.append('RPDO1 deadline 0x1400:05')
+            except ProtocolException as exc:
+                refused.append(f'the drive refused the RPDO1 deadline 0x1400:05 ({_abort(exc)})')
+        problems.extend(refused)
+        if not held:
+            log.warning('%s: no drive-side protection against host death: %s',
+                        self.hardware_id, '; '.join(refused))
+            return HostLossProtection(requested=protection.requested, note=(
+                '; '.join(refused) + ': only the host watchdog stops the motor, not a dead '
+                'host'))
+        notes = [note for note in (protection.note, *refused) if note]
+        return HostLossProtection(' + '.join(held), ms / 1000, protection.requested,
+                                  '; '.join(notes))
 
     def _commission(self) -> list[str]:
         problems = []
@@ -259,8 +332,8 @@ class CanopenDrive:
             try:
                 raw = parameter.to_raw(item.value)
                 if self._read_parameter(parameter) != raw:
-                    self.transport.write_object(parameter.index, parameter.subindex,
-                                                parameter.type, raw)
+                    self.transport.write_object(self.unit_id, parameter.index,
+                                                parameter.subindex, parameter.type, raw)
             except (ParameterError, ProtocolException) as exc:   # e.g. an SDO abort
                 problems.append(f'{item.code} = {item.value:g}: {exc}')
         return problems
@@ -336,9 +409,7 @@ class CanopenDrive:
         return int(command) if command is not None else int(Command.DISABLE_VOLTAGE)
 
     def _send_rpdo(self, controlword: int, velocity_raw: int) -> None:
-        self.transport.send(0x200 + self.unit_id, pack_pdo(
-            [(self.objects.controlword, controlword),
-             (self.objects.target_velocity, velocity_raw)]))
+        self.transport.transmit(self.unit_id, 1, [controlword, velocity_raw])
         self._last_controlword = controlword
         self.last_setpoint_raw = velocity_raw
 
@@ -372,34 +443,42 @@ class CanopenDrive:
 
     def poll(self, cycle: int, preempt: Callable[[], None] | None = None) -> Reading:
         """Decode what the drive sent (TPDOs, EMCY); raise if its heartbeat is lost."""
-        nmt = self.transport.check_alive()
-        if self._configured and nmt is not None and nmt not in (NmtState.OPERATIONAL,):
-            raise TransportError(f'node {self.unit_id} reports NMT state {nmt.name}')
+        nmt = self.transport.check_alive(self.unit_id)
+        if self._configured and nmt not in (None, 'OPERATIONAL'):
+            raise TransportError(f'node {self.unit_id} reports NMT state {nmt}')
         for number, group in enumerate(self.tpdo_layout, 1):
-            received = self.transport.tpdo(number)
-            if received is None:
+            raws = self.transport.received(self.unit_id, number)
+            if raws is None:
                 continue
-            objects = [obj for _, obj in group]
-            if len(received[0]) * 8 < sum(o.type.bits for o in objects):
-                self.transport.stats.bad_frames += 1
-                continue
-            for (role, _), raw in zip(group, unpack_pdo(objects, received[0])):
+            for (role, _), raw in zip(group, raws):
                 self._values[role] = raw
         self._update_state()
         self._take_emcy()
         return self._reading()
 
+    @property
+    def _cia_codes(self) -> bool:
+        """Whether the profile's fault table holds CiA error codes (EMCY bytes 0-1)."""
+        return self.spec.emcy_fault is EmcyFault.ERROR_CODE
+
+    def _describe_emcy(self, emcy: EmcyError) -> FaultInfo:
+        if self.spec.emcy_fault is EmcyFault.MANUFACTURER_BYTE and emcy.data[:1] != b'\0':
+            return describe_fault(self.profile.faults, emcy.data[0])
+        if self._cia_codes:
+            return describe_fault(self.profile.faults, emcy.code)
+        return cia_fault(emcy.code, emcy.register)      # e.g. a Kinco's 0x8110 CAN overrun
+
     def _take_emcy(self) -> None:
-        for frame in self.transport.take_emcy():
-            if frame.code == 0:
-                self._emcy_fault = NO_FAULT          # error reset / no error
+        new, active = self.transport.take_emcy(self.unit_id)
+        for emcy in new:
+            if not emcy.code & 0xFF00:
+                log.info('%s EMCY error reset', self.hardware_id)
                 continue
-            code = frame.data[0] if self.spec.emcy_fault is EmcyFault.MANUFACTURER_BYTE \
-                else frame.code
-            self._emcy_fault = describe_fault(self.profile.faults, code)
-            log.warning('%s EMCY %04Xh register %02Xh data %s: %s %s', self.hardware_id,
-                        frame.code, frame.register, frame.data.hex(' '),
-                        self._emcy_fault.display, self._emcy_fault.name)
+            info = self._describe_emcy(emcy)
+            log.warning('%s EMCY 0x%04X (%s) register 0x%02X data %s: %s %s', self.hardware_id,
+                        emcy.code, emcy.get_desc(), emcy.register, emcy.data.hex(' '),
+                        info.display, info.name)
+        self._emcy_fault = self._describe_emcy(active[-1]) if active else NO_FAULT
 
     def _reading(self) -> Reading:
         reading = Reading(stuck=self.stuck)
@@ -411,15 +490,17 @@ class CanopenDrive:
         status = self._values.get(self._status_role)
         if status is not None:
             reading.raw_words[obj_code(self.objects.statusword)] = status
+        code = int(reading.values.get('fault_code', 0))
         if self.cia402:
             state = self.state
             if state is not None:
                 reading.raw_words['cia402_state'] = int(state)
+            faulted = state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
             reading.flags = {
                 'ready': state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
                                    State.SWITCHED_ON, State.OPERATION_ENABLED),
                 'running': state is State.OPERATION_ENABLED,
-                'fault': state in (State.FAULT, State.FAULT_REACTION_ACTIVE),
+                'fault': faulted,
                 'warning': bool(status is not None and status & StatusBit.WARNING),
                 'at_speed': state is State.OPERATION_ENABLED and bool(
                     status is not None and status & StatusBit.TARGET_REACHED),
@@ -429,13 +510,9 @@ class CanopenDrive:
             for name, rule in self.profile.flags.items():
                 if rule.signal in reading.values:
                     reading.flags[name] = rule.evaluate(reading.values[rule.signal])
-        code = int(reading.values.get('fault_code', 0))
-        faulted = reading.flags.get('fault', code != 0)
-        if code:
-            reading.fault = describe_fault(self.profile.faults, code)
-        elif faulted:
-            reading.fault = self._emcy_fault if self._emcy_fault.active else \
-                describe_fault(self.profile.faults, GENERIC_ERROR)
+            faulted = reading.flags.get('fault', code != 0)
+        reading.fault = decode_fault(faulted, code, self._emcy_fault, self.profile.faults,
+                                     self._cia_codes)
         speed = reading.values.get('motor_speed')
         if speed is not None:
             reading.measured_velocity = self.scaling.from_native(speed,
@@ -451,7 +528,8 @@ class CanopenDrive:
         return parameter
 
     def _read_parameter(self, parameter: Parameter) -> int:
-        return self.transport.read_object(parameter.index, parameter.subindex, parameter.type)
+        return self.transport.read_object(self.unit_id, parameter.index, parameter.subindex,
+                                          parameter.type)
 
     def get_parameter(self, key: str) -> ParameterValue:
         parameter = self._object_of(self.profile.parameter(key))
@@ -467,7 +545,8 @@ class CanopenDrive:
                       running: bool) -> tuple[ParameterValue, str]:
         """Validate (access, range, resolution, type), SDO download, read back."""
         parameter, raw = self.check_write(key, value, running)
-        self.transport.write_object(parameter.index, parameter.subindex, parameter.type, raw)
+        self.transport.write_object(self.unit_id, parameter.index, parameter.subindex,
+                                    parameter.type, raw)
         readback = self._read_parameter(parameter)
         if readback != raw:
             raise ParameterError(f'{parameter.code}: wrote {raw} but the drive holds {readback}')
@@ -478,3 +557,8 @@ class CanopenDrive:
 
 def obj_code(obj: CanObject) -> str:
     return obj.code or str(obj)
+
+
+def entries(objects: Iterable[CanObject]) -> list[ObjectEntry]:
+    """Return the transport's view of profile objects: address, name and type."""
+    return [ObjectEntry(obj.index, obj.subindex, obj_code(obj), obj.type) for obj in objects]

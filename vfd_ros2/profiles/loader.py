@@ -190,6 +190,7 @@ def _canopen(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> Ca
         transmission_type=int(item.get('transmission_type', 255)),
         tpdo_event_timer_ms=int(item.get('tpdo_event_timer_ms', 0)),
         rpdo_deadline=bool(item.get('rpdo_deadline', False)),
+        heartbeat_consumer=bool(item.get('heartbeat_consumer', False)),
         emcy_fault=EmcyFault(item.get('emcy_fault', 'error_code')),
         note=str(item.get('note', '')),
     )

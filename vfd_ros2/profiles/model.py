@@ -362,6 +362,7 @@ class CanopenSpec:
     transmission_type: int = 255
     tpdo_event_timer_ms: int = 0            # 0x18xx:05 (0 = send on change only)
     rpdo_deadline: bool = False             # 0x14xx:05 supervises RPDO reception
+    heartbeat_consumer: bool = False        # 0x1016: the drive documents a heartbeat consumer
     emcy_fault: EmcyFault = EmcyFault.ERROR_CODE
     note: str = ''
 

@@ -9,8 +9,16 @@ parameters' objects). What it does, over real CAN frames:
 - takes PDO communication and mapping parameters, receives RPDOs and sends its
   TPDOs itself (on change and on the event timer), in NMT Operational only;
 - NMT commands, boot-up, heartbeat production at 0x1017;
+- where the profile documents it (``heartbeat_consumer``), a heartbeat consumer
+  (0x1016:01): monitoring starts with the host's first heartbeat; a heartbeat
+  event sends EMCY 0x8130, takes the NMT reaction of 0x1029:01 (0: pre-operational,
+  1: none, 2: stopped) and, as a CiA 402 fault reaction, stops an energised motor in
+  FAULT (a command-word drive stops running). A profile without it has no 0x1016: the
+  write is aborted with 0602 0000, as a real drive without the object does;
 - the CiA 402 state machine (``vfd_ros2.protocol.cia402``) or a manufacturer command word
-  (Kinco 0x2A00), a speed ramp, EMCY on faults and on their reset;
+  (Kinco 0x2A00), a speed ramp, EMCY on faults and on their reset; the error code
+  object (0x603F) holds the active fault, or keeps the last one after a reset
+  (``keeps_last_error``), or stays 0 (``report_error_code = False``: only EMCY names it);
 - fault injection, silence injection (cable unplugged), a drive that cannot be
   enabled, and a motor stop when the master's RPDOs stop (0x1400:05 deadline).
 
@@ -19,7 +27,6 @@ Several drives share one ``SimulatedCanBus``; one thread ticks them in turn.
 
 from __future__ import annotations
 
-import struct
 import threading
 import time
 from typing import Any, Callable
@@ -37,24 +44,19 @@ from ..profiles import (
     ValueType,
 )
 from ..protocol.cia402 import STATUSWORD_OF, ControlBit, State, transition
+from ..transports.canopen import (
+    PDO_DISABLED,
+    ObjectEntry,
+    add_objects,
+    add_pdo_objects,
+    od_variable,
+)
 
-_DATA_TYPE = {
-    ValueType.UINT8: od.UNSIGNED8, ValueType.INT8: od.INTEGER8,
-    ValueType.UINT16: od.UNSIGNED16, ValueType.INT16: od.INTEGER16,
-    ValueType.UINT32: od.UNSIGNED32, ValueType.INT32: od.INTEGER32,
-}
-PDO_DISABLED = 0x80000000
 RPDO_TIMEOUT = 0x8250          # CiA 301 EMCY: RPDO timeout
+HEARTBEAT_EVENT = 0x8130       # CiA 301 EMCY: life guard or heartbeat error
 MANUFACTURER_EMCY = 0xFF00
-
-
-def _variable(name: str, index: int, subindex: int, value_type: ValueType, access: str,
-              default: int = 0) -> od.ODVariable:
-    var = od.ODVariable(name, index, subindex)
-    var.data_type = _DATA_TYPE[value_type]
-    var.access_type = access
-    var.default = default
-    return var
+GENERIC_REGISTER = 0x01        # error register bit 0: generic error
+COMMUNICATION_REGISTER = 0x11  # ... + bit 4: communication error
 
 
 class _TwinNode(canopen.LocalNode):
@@ -87,8 +89,9 @@ class SimulatedCanopenDrive:
         self.node.add_read_callback(self._on_sdo_read)
         for code, value in (initial or {}).items():
             parameter = profile.parameter(code)
+            obj = self.node._find_object(parameter.index, parameter.subindex)  # noqa: SLF001
             self.node.data_store.setdefault(parameter.index, {})[parameter.subindex] = \
-                struct.pack(_fmt(parameter.type), parameter.to_raw(value))
+                obj.encode_raw(parameter.to_raw(value))
         self.network: Any = None
         self.state = State.SWITCH_ON_DISABLED
         self.controlword = 0
@@ -96,7 +99,13 @@ class SimulatedCanopenDrive:
         self.speed_rpm = 0.0
         self.run_requested = False          # command_word style
         self.fault_code = 0
+        self.last_error = 0                 # the fault before the last reset
+        self.keeps_last_error = False       # 0x603F keeps the last error after a reset
+        self.report_error_code = True       # False: 0x603F stays 0, only EMCY names faults
         self.fault_cause_present = False
+        self.heartbeat_events = 0
+        self._consumer_cob: int | None = None
+        self._host_seen: float | None = None
         self.silent = False
         self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
         self.emcy_sent: list[tuple[int, int, bytes]] = []
@@ -110,65 +119,28 @@ class SimulatedCanopenDrive:
 
     def _dictionary(self) -> od.ObjectDictionary:
         d = od.ObjectDictionary()
-        node = self.node_id
-        d.add_object(_variable('Device type', 0x1000, 0, ValueType.UINT32, 'ro', 0x00020192))
-        d.add_object(_variable('Error register', 0x1001, 0, ValueType.UINT8, 'ro'))
-        d.add_object(_variable('Producer heartbeat time', 0x1017, 0, ValueType.UINT16, 'rw'))
-        for number in range(self.spec.rpdos):
-            self._pdo_objects(d, 0x1400 + number, 0x1600 + number,
-                              0x200 + 0x100 * number + node, 'RPDO')
-        for number in range(self.spec.tpdos):
-            self._pdo_objects(d, 0x1800 + number, 0x1A00 + number,
-                              0x180 + 0x100 * number + node, 'TPDO')
-        entries: dict[int, list[tuple[int, str, ValueType, str, int]]] = {}
-        for (index, sub), p in self.parameters.items():
-            raw = p.to_raw(p.default) if p.default is not None else 0
-            entries.setdefault(index, []).append(
-                (sub, p.code, p.type, 'ro' if p.access.value == 'ro' else 'rw', raw))
+        d.add_object(od_variable('Device type', 0x1000, 0, ValueType.UINT32, 'ro', 0x00020192))
+        d.add_object(od_variable('Error register', 0x1001, 0, ValueType.UINT8, 'ro'))
+        d.add_object(od_variable('Producer heartbeat time', 0x1017, 0, ValueType.UINT16, 'rw'))
+        add_pdo_objects(d, self.node_id, self.spec.rpdos, self.spec.tpdos)
+        entries = [ObjectEntry(index, sub, p.code, p.type,
+                               'ro' if p.access.value == 'ro' else 'rw',
+                               p.to_raw(p.default) if p.default is not None else 0)
+                   for (index, sub), p in self.parameters.items()]
+        if self.spec.heartbeat_consumer:
+            entries += [ObjectEntry(0x1016, 1, 'Consumer heartbeat time 1', ValueType.UINT32),
+                        ObjectEntry(0x1029, 1, 'Error behaviour: communication error',
+                                    ValueType.UINT8)]
         objs = [self.objects.controlword, self.objects.statusword, self.objects.target_velocity,
                 *self.objects.monitor.values()]
         if self.objects.mode_of_operation is not None:
             objs.append(self.objects.mode_of_operation)
-        for obj in objs:
-            if (obj.index, obj.subindex) not in self.parameters and not any(
-                    e[0] == obj.subindex for e in entries.get(obj.index, [])):
-                writable = obj in (self.objects.controlword, self.objects.target_velocity,
-                                   self.objects.mode_of_operation)
-                entries.setdefault(obj.index, []).append(
-                    (obj.subindex, str(obj), obj.type, 'rw' if writable else 'ro', 0))
-        for index, subs in sorted(entries.items()):
-            if len(subs) == 1 and subs[0][0] == 0:
-                sub, name, value_type, access, raw = subs[0]
-                d.add_object(_variable(name, index, 0, value_type, access, raw))
-                continue
-            record = od.ODRecord(f'0x{index:04X}', index)
-            record.add_member(_variable('Number of entries', index, 0, ValueType.UINT8, 'ro',
-                                        max(s[0] for s in subs)))
-            for sub, name, value_type, access, raw in subs:
-                if sub:
-                    record.add_member(_variable(name, index, sub, value_type, access, raw))
-            d.add_object(record)
+        writable = (self.objects.controlword, self.objects.target_velocity,
+                    self.objects.mode_of_operation)
+        entries += [ObjectEntry(obj.index, obj.subindex, str(obj), obj.type,
+                                'rw' if obj in writable else 'ro') for obj in objs]
+        add_objects(d, entries)
         return d
-
-    @staticmethod
-    def _pdo_objects(d: od.ObjectDictionary, comm: int, mapping: int, cob: int,
-                     kind: str) -> None:
-        record = od.ODRecord(f'{kind} communication', comm)
-        record.add_member(_variable('Highest sub-index', comm, 0, ValueType.UINT8, 'ro', 5))
-        record.add_member(_variable('COB-ID', comm, 1, ValueType.UINT32, 'rw',
-                                    PDO_DISABLED | cob))
-        record.add_member(_variable('Transmission type', comm, 2, ValueType.UINT8, 'rw', 255))
-        if kind == 'TPDO':
-            record.add_member(_variable('Inhibit time', comm, 3, ValueType.UINT16, 'rw'))
-        record.add_member(_variable('Event timer', comm, 5, ValueType.UINT16, 'rw'))
-        d.add_object(record)
-        record = od.ODRecord(f'{kind} mapping', mapping)
-        record.add_member(_variable('Number of mapped objects', mapping, 0, ValueType.UINT8,
-                                    'rw'))
-        for sub in range(1, 9):
-            record.add_member(_variable(f'Mapped object {sub}', mapping, sub, ValueType.UINT32,
-                                        'rw'))
-        d.add_object(record)
 
     def _stored(self, index: int, subindex: int) -> int:
         obj = self.node._find_object(index, subindex)   # noqa: SLF001 - the OD lookup
@@ -234,7 +206,7 @@ class SimulatedCanopenDrive:
             if role == 'motor_speed':
                 return round(self.speed_rpm / obj.scale)
             if role == 'fault_code':
-                return self.fault_code
+                return self.error_code()
             if role == 'output_current':
                 load = abs(self.speed_rpm) / 3000.0
                 return round((2.0 + 8.0 * load if self.speed_rpm else 0.0) / obj.scale)
@@ -246,6 +218,12 @@ class SimulatedCanopenDrive:
             mode = self.objects.mode_of_operation
             return self._stored(mode.index, mode.subindex)   # 0x6061 follows 0x6060
         return None
+
+    def error_code(self) -> int:
+        """Return the error code object's value (0x603F or the profile's fault code)."""
+        if not self.report_error_code:
+            return 0
+        return self.fault_code or (self.last_error if self.keeps_last_error else 0)
 
     def _raw(self, index: int, subindex: int) -> int:
         live = self._dynamic(index, subindex)
@@ -291,6 +269,8 @@ class SimulatedCanopenDrive:
             self.target_raw = raw
         elif key == (0x1017, 0):
             self._last_heartbeat = 0.0
+        elif key == (0x1016, 1):
+            self._watch_host(raw)
 
     # --- behaviour --------------------------------------------------------------------------
 
@@ -330,11 +310,13 @@ class SimulatedCanopenDrive:
             self.run_requested = False
 
     def _clear_fault(self) -> None:
+        self.last_error = self.fault_code
         self.fault_code = 0
         self.state = State.SWITCH_ON_DISABLED
         self._emcy(0)
 
-    def inject_fault(self, code: int, subcode: int = 0, latched: bool = False) -> None:
+    def inject_fault(self, code: int, subcode: int = 0, latched: bool = False,
+                     register: int = GENERIC_REGISTER) -> None:
         """Raise a fault with an EMCY (code 0: the cause is gone, a reset will clear it)."""
         with self.lock:
             if code == 0:
@@ -344,19 +326,18 @@ class SimulatedCanopenDrive:
             self.fault_cause_present = latched
             self.run_requested = False
             self.state = State.FAULT
-            self._emcy(code)
+            self._emcy(code, register)
 
-    def _emcy(self, code: int) -> None:
+    def _emcy(self, code: int, register: int = GENERIC_REGISTER) -> None:
         if code == 0:
             frame = (0, 0, bytes(5))
-        elif self.spec.emcy_fault is EmcyFault.MANUFACTURER_BYTE:
-            frame = (MANUFACTURER_EMCY, 0x01, bytes((code & 0xFF, 0, 0, 0, 0)))
+        elif self.spec.emcy_fault is EmcyFault.MANUFACTURER_BYTE and code < 0x100:
+            frame = (MANUFACTURER_EMCY, register, bytes((code & 0xFF, 0, 0, 0, 0)))
         else:
-            frame = (code, 0x01, bytes(5))
+            frame = (code, register, bytes(5))     # a CiA error code (e.g. 0x8130)
         self.emcy_sent.append(frame)
         if self.network is not None and not self.silent:
-            self.network.send_message(0x80 + self.node_id,
-                                      struct.pack('<HB', frame[0], frame[1]) + frame[2])
+            self.node.emcy.send(*frame)         # the library's EMCY producer
 
     def _target_rpm(self) -> float:
         return self.target_raw * self.objects.target_velocity.scale
@@ -379,6 +360,7 @@ class SimulatedCanopenDrive:
             dt = max(0.0, min(now - self._last_tick, 0.5))
             self._last_tick = now
             self._nmt_housekeeping()
+            self._consume_heartbeat(now)
             self._supervise_master(now)
             if self.cia402:
                 running = self.state is State.OPERATION_ENABLED
@@ -403,12 +385,52 @@ class SimulatedCanopenDrive:
     def _nmt_housekeeping(self) -> None:
         if self.node.nmt.state == 'INITIALISING':      # after an NMT reset: boot-up sent
             for index in list(self.node.data_store):
-                if index == 0x1017 or 0x1400 <= index <= 0x1BFF:
+                if index in (0x1016, 0x1017, 0x1029) or 0x1400 <= index <= 0x1BFF:
                     del self.node.data_store[index]
+            self._watch_host(0)
             self.state = State.SWITCH_ON_DISABLED
             self.run_requested = False
             self.target_raw = 0
             self.node.nmt.state = 'PRE-OPERATIONAL'
+
+    def _watch_host(self, consumer: int) -> None:
+        """Consume the heartbeat of node ``consumer >> 16`` (0x1016:01); 0 = none."""
+        node_id, ms = (consumer >> 16) & 0x7F, consumer & 0xFFFF
+        cob = 0x700 + node_id if node_id and ms else None
+        if self.network is not None and cob != self._consumer_cob:
+            if self._consumer_cob is not None:
+                self.network.unsubscribe(self._consumer_cob, self._on_host_heartbeat)
+            if cob is not None:
+                self.network.subscribe(cob, self._on_host_heartbeat)
+        self._consumer_cob = cob
+        self._host_seen = None      # CiA 301: monitoring starts with the first heartbeat
+
+    def _on_host_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.silent:
+            return
+        with self.lock:
+            self._host_seen = self._clock()
+
+    def _consume_heartbeat(self, now: float) -> None:
+        """Heartbeat event when the host's heartbeat is late (CiA 301 0x1016)."""
+        if self._consumer_cob is None or self._host_seen is None:
+            return
+        if now - self._host_seen <= (self._stored(0x1016, 1) & 0xFFFF) / 1000.0:
+            return
+        self._host_seen = None      # one event; monitoring resumes with the next heartbeat
+        self.heartbeat_events += 1
+        behaviour = self._stored(0x1029, 1)
+        if behaviour == 0 and self.node.nmt.state == 'OPERATIONAL':
+            self.node.nmt.state = 'PRE-OPERATIONAL'
+        elif behaviour == 2:
+            self.node.nmt.state = 'STOPPED'
+        # The fault reaction stops an energised motor; an idle drive only reports it
+        # (so a host that restarts finds its idle drives without a fault).
+        if self.cia402 and self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+            self.inject_fault(HEARTBEAT_EVENT, register=COMMUNICATION_REGISTER)
+        else:
+            self.run_requested = False
+            self._emcy(HEARTBEAT_EVENT, COMMUNICATION_REGISTER)
 
     def _supervise_master(self, now: float) -> None:
         """Stop the motor when the master's RPDOs stop (0x1400:05) or NMT leaves Operational."""
@@ -501,11 +523,6 @@ class SimulatedCanopenDrive:
     def _signed(self, index: int, subindex: int) -> bool:
         obj = self.node._find_object(index, subindex)   # noqa: SLF001
         return obj.data_type in (od.INTEGER8, od.INTEGER16, od.INTEGER32)
-
-
-def _fmt(value_type: ValueType) -> str:
-    return {ValueType.UINT8: '<B', ValueType.INT8: '<b', ValueType.UINT16: '<H',
-            ValueType.INT16: '<h', ValueType.UINT32: '<I', ValueType.INT32: '<i'}[value_type]
 
 
 class SimulatedCanBus:

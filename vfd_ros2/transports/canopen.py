@@ -1,76 +1,72 @@
-"""CANopen (CiA 301) transport: SDO, PDO, NMT, heartbeat and EMCY on python-can + canopen.
+"""CANopen (CiA 301) transport on the ``canopen`` library: one ``Network`` per CAN channel.
 
-Moves raw object values to and from one node; knows nothing of drives or
-scaling (``vfd_ros2.drives.canopen`` does). The bus is opened per transport, so
-several drives on one physical bus are independent: a dead node only costs
-its own controller its timeouts.
+Moves raw object values to and from the nodes of one CAN channel; knows nothing
+of drives, profiles or scaling (``vfd_ros2.drives.canopen`` does). The library does the
+protocol work:
 
-- SDO: expedited transfers through the ``canopen`` library's SDO client; abort
-  codes are raised as ``SdoAbort`` (a ``ProtocolException``) with the CiA 301 text.
-- PDO: configured over SDO by the drive at connect; RPDOs are sent as raw frames,
-  TPDOs are received into a cache (no per-cycle round trip).
-- NMT commands; boot-up and heartbeat consumed on 0x700 + id: ``check_alive``
-  raises ``CommTimeout`` when no heartbeat arrived within the consumer timeout,
-  and ``TransportError`` after a boot-up (the node reset and lost its configuration).
-- EMCY frames on 0x80 + id are decoded and kept for the drive.
+- ``CanChannel``: one python-can bus and one ``canopen.Network`` (one notifier
+  thread) per (interface, channel, bitrate) in this process, shared by every node
+  and every transport on it, and closed with the last node (adapters such as PCAN
+  or Kvaser allow one open handle per channel). The host heartbeat is produced
+  once per channel with ``Network.send_periodic``.
+- per node a ``canopen.RemoteNode``: ``sdo`` (expedited transfers; aborts arrive
+  as ``SdoAbortedError`` and keep its CiA 301 text table), ``nmt`` (commands,
+  heartbeat and boot-up reception), ``emcy`` (``EmcyConsumer``: active errors,
+  error reset), ``rpdo``/``tpdo`` (``PdoMap``: the mapping saved over SDO, TPDOs
+  received by the library, RPDOs transmitted from its map).
+
+What the library does not do is all that is left here: a host-side heartbeat
+consumer with a timeout (``check_alive``), the library's errors mapped by type
+onto the driver's exception tree, per-node counters, and an object dictionary
+built from the drive's objects when no EDS is given (``node_dictionary``, also
+used by the simulated twin).
 """
 
 from __future__ import annotations
 
-import enum
 import logging
-import struct
+import math
+import queue
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping, NamedTuple
 
-from ..errors import CommTimeout, ParameterError, ProtocolException, TransportError
+import can
+import canopen
+from canopen import objectdictionary as od
+from canopen.emcy import EmcyError
+from canopen.nmt import NMT_STATES
+
+from ..errors import (
+    CommTimeout,
+    ParameterError,
+    ProfileError,
+    ProtocolException,
+    TransportError,
+)
 from ..protocol.values import ValueType
 from .base import Transport, TransportParameter
 
 log = logging.getLogger(__name__)
 
-#: SDO abort codes, CiA 301 v4.2 table 22 (the Kinco manual's list, L898-L914, is a subset)
-SDO_ABORT_CODES: dict[int, str] = {
-    0x05030000: 'Toggle bit not alternated',
-    0x05040000: 'SDO protocol timed out',
-    0x05040001: 'Client/server command specifier not valid or unknown',
-    0x05040002: 'Invalid block size',
-    0x05040003: 'Invalid sequence number',
-    0x05040004: 'CRC error',
-    0x05040005: 'Out of memory',
-    0x06010000: 'Unsupported access to an object',
-    0x06010001: 'Attempt to read a write only object',
-    0x06010002: 'Attempt to write a read only object',
-    0x06020000: 'Object does not exist in the object dictionary',
-    0x06040041: 'Object cannot be mapped to the PDO',
-    0x06040042: 'The number and length of the objects to be mapped would exceed PDO length',
-    0x06040043: 'General parameter incompatibility reason',
-    0x06040047: 'General internal incompatibility in the device',
-    0x06060000: 'Access failed due to a hardware error',
-    0x06070010: 'Data type does not match, length of service parameter does not match',
-    0x06070012: 'Data type does not match, length of service parameter too high',
-    0x06070013: 'Data type does not match, length of service parameter too low',
-    0x06090011: 'Sub-index does not exist',
-    0x06090030: 'Invalid value for parameter (download only)',
-    0x06090031: 'Value of parameter written too high (download only)',
-    0x06090032: 'Value of parameter written too low (download only)',
-    0x06090036: 'Maximum value is less than minimum value',
-    0x060A0023: 'Resource not available: SDO connection',
-    0x08000000: 'General error',
-    0x08000020: 'Data cannot be transferred or stored to the application',
-    0x08000021: 'Data cannot be transferred or stored to the application because of local '
-                'control',
-    0x08000022: 'Data cannot be transferred or stored to the application because of the '
-                'present device state',
-    0x08000023: 'Object dictionary dynamic generation fails or no object dictionary is present',
-    0x08000024: 'No data available',
+PDO_DISABLED = 0x80000000
+#: NMT state byte of Operational in a heartbeat (CiA 301); the host reports it too
+NMT_OPERATIONAL = 0x05
+#: host heartbeat period bounds when derived from the control rate (s)
+HOST_HEARTBEAT_MIN = 0.01
+HOST_HEARTBEAT_MAX = 0.1
+
+_DATA_TYPE = {
+    ValueType.UINT8: od.UNSIGNED8, ValueType.INT8: od.INTEGER8,
+    ValueType.UINT16: od.UNSIGNED16, ValueType.INT16: od.INTEGER16,
+    ValueType.UINT32: od.UNSIGNED32, ValueType.INT32: od.INTEGER32,
 }
 
 
 def abort_text(code: int) -> str:
-    return SDO_ABORT_CODES.get(code, f'unknown SDO abort code 0x{code:08X}')
+    """Return the CiA 301 text of an SDO abort code (the library's table)."""
+    return canopen.SdoAbortedError.CODES.get(code, f'unknown SDO abort code 0x{code:08X}')
 
 
 class SdoAbort(ProtocolException):
@@ -85,105 +81,275 @@ class SdoAbort(ProtocolException):
         return self.args[0]
 
 
-class NmtCommand(enum.IntEnum):
-    """NMT command specifiers (CiA 301 7.2.8.3.1; Kinco L985-L997)."""
-
-    START = 0x01
-    STOP = 0x02
-    ENTER_PRE_OPERATIONAL = 0x80
-    RESET_NODE = 0x81
-    RESET_COMMUNICATION = 0x82
+# --- object dictionaries (the driver's view of a node, and the twin's) -------------------
 
 
-class NmtState(enum.IntEnum):
-    """NMT states as reported in heartbeat frames."""
+class ObjectEntry(NamedTuple):
+    """One object of a node's dictionary: address, name, type, access, default."""
 
-    BOOT_UP = 0x00
-    STOPPED = 0x04
-    OPERATIONAL = 0x05
-    PRE_OPERATIONAL = 0x7F
+    index: int
+    subindex: int
+    name: str
+    type: ValueType
+    access: str = 'rw'
+    default: int = 0
 
 
-@dataclass(frozen=True)
-class Emcy:
-    """One EMCY frame: error code, error register and the 5 manufacturer bytes."""
+def od_variable(name: str, index: int, subindex: int, value_type: ValueType,
+                access: str = 'rw', default: int = 0) -> od.ODVariable:
+    """Return a typed object dictionary variable."""
+    var = od.ODVariable(name, index, subindex)
+    var.data_type = _DATA_TYPE[value_type]
+    var.access_type = access
+    var.default = default
+    return var
 
-    code: int
-    register: int
-    data: bytes
-    timestamp: float
+
+def add_objects(dictionary: od.ObjectDictionary, entries: Iterable[ObjectEntry]) -> None:
+    """Add variables; several sub-indices of one index become a record."""
+    grouped: dict[int, list[ObjectEntry]] = {}
+    for entry in entries:
+        subs = grouped.setdefault(entry.index, [])
+        if all(e.subindex != entry.subindex for e in subs):
+            subs.append(entry)
+    for index, subs in sorted(grouped.items()):
+        if index in dictionary:
+            continue
+        if len(subs) == 1 and subs[0].subindex == 0:
+            e = subs[0]
+            dictionary.add_object(od_variable(e.name, index, 0, e.type, e.access, e.default))
+            continue
+        record = od.ODRecord(f'0x{index:04X}', index)
+        record.add_member(od_variable('Number of entries', index, 0, ValueType.UINT8, 'ro',
+                                      max(e.subindex for e in subs)))
+        for e in subs:
+            if e.subindex:
+                record.add_member(od_variable(e.name, index, e.subindex, e.type, e.access,
+                                              e.default))
+        dictionary.add_object(record)
+
+
+def add_pdo_objects(dictionary: od.ObjectDictionary, node_id: int, rpdos: int,
+                    tpdos: int) -> None:
+    """Add the PDO communication and mapping records (CiA 301 0x1400-0x1BFF)."""
+    for kind, count, comm, mapping, cob_base in (('RPDO', rpdos, 0x1400, 0x1600, 0x200),
+                                                 ('TPDO', tpdos, 0x1800, 0x1A00, 0x180)):
+        for number in range(count):
+            cob = cob_base + 0x100 * number + node_id if number < 4 else 0
+            record = od.ODRecord(f'{kind}{number + 1} communication', comm + number)
+            record.add_member(od_variable('Highest sub-index', comm + number, 0,
+                                          ValueType.UINT8, 'ro', 5))
+            record.add_member(od_variable('COB-ID', comm + number, 1, ValueType.UINT32, 'rw',
+                                          PDO_DISABLED | cob))
+            record.add_member(od_variable('Transmission type', comm + number, 2,
+                                          ValueType.UINT8, 'rw', 255))
+            if kind == 'TPDO':
+                record.add_member(od_variable('Inhibit time', comm + number, 3,
+                                              ValueType.UINT16, 'rw'))
+            # RPDO: deadline monitoring; TPDO: event timer
+            record.add_member(od_variable('Event timer', comm + number, 5, ValueType.UINT16,
+                                          'rw'))
+            dictionary.add_object(record)
+            record = od.ODRecord(f'{kind}{number + 1} mapping', mapping + number)
+            record.add_member(od_variable('Number of mapped objects', mapping + number, 0,
+                                          ValueType.UINT8, 'rw'))
+            for sub in range(1, 9):
+                record.add_member(od_variable(f'Mapped object {sub}', mapping + number, sub,
+                                              ValueType.UINT32, 'rw'))
+            dictionary.add_object(record)
+
+
+def node_dictionary(node_id: int, objects: Iterable[ObjectEntry], rpdos: int,
+                    tpdos: int) -> od.ObjectDictionary:
+    """Return the dictionary the library needs for a node: PDO records and mapped objects."""
+    dictionary = od.ObjectDictionary()
+    add_pdo_objects(dictionary, node_id, rpdos, tpdos)
+    add_objects(dictionary, objects)
+    return dictionary
+
+
+def _codec(index: int, subindex: int, value_type: ValueType) -> od.ODVariable:
+    return od_variable(f'0x{index:04X}:{subindex:02X}', index, subindex, value_type)
+
+
+# --- the channel: one bus, one Network, one host heartbeat --------------------------------
+
+_CHANNELS: dict[tuple[str, str, int], 'CanChannel'] = {}
+_CHANNELS_LOCK = threading.Lock()
+
+
+def open_channels() -> list['CanChannel']:
+    """Return the CAN channels this process has open (for diagnostics and tests)."""
+    with _CHANNELS_LOCK:
+        return list(_CHANNELS.values())
+
+
+class CanChannel:
+    """One CAN channel of this process: python-can bus, ``canopen.Network``, host heartbeat.
+
+    Reference-counted: ``acquire`` opens the bus the first time and ``release``
+    closes it with the last user, so every node on the channel shares one handle
+    and one notifier thread, whichever transport or thread drives it.
+    """
+
+    def __init__(self, key: tuple[str, str, int], network: canopen.Network) -> None:
+        self.key = key
+        self.network = network
+        self.users = 0
+        self.lock = threading.Lock()
+        self.host_node_id: int | None = None
+        self.heartbeat_period = 0.0
+        self._heartbeat: Any = None
+
+    @property
+    def description(self) -> str:
+        return f'can:{self.key[0]}:{self.key[1]}'
 
     @classmethod
-    def decode(cls, data: bytes, timestamp: float) -> 'Emcy':
-        padded = bytes(data) + bytes(8 - len(data)) if len(data) < 8 else bytes(data)
-        code, register = struct.unpack_from('<HB', padded)
-        return cls(code, register, padded[3:8], timestamp)
+    def acquire(cls, interface: str, channel: str, bitrate: int = 0,
+                bus_factory: Callable[..., Any] | None = None) -> 'CanChannel':
+        """Return the open channel (opening it if needed) with one more user."""
+        key = (interface, channel, int(bitrate))
+        with _CHANNELS_LOCK:
+            found = _CHANNELS.get(key)
+            if found is None:
+                kwargs: dict[str, Any] = {'interface': interface, 'channel': channel}
+                if bitrate:
+                    kwargs['bitrate'] = int(bitrate)
+                try:
+                    bus = (bus_factory or can.Bus)(**kwargs)
+                except (can.CanError, OSError, ValueError, ImportError) as exc:
+                    raise TransportError(f'cannot open CAN {interface}:{channel}: {exc}') from exc
+                network = canopen.Network(bus)
+                network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
+                network.connect()
+                found = _CHANNELS[key] = cls(key, network)
+            found.users += 1
+            return found
+
+    def release(self) -> None:
+        """Drop one user; the last one stops the heartbeat and closes the bus."""
+        with _CHANNELS_LOCK:
+            self.users -= 1
+            if self.users > 0:
+                return
+            if _CHANNELS.get(self.key) is self:
+                del _CHANNELS[self.key]
+        self.stop_heartbeat()
+        try:
+            self.network.disconnect()
+        except Exception as exc:  # noqa: BLE001 - close never raises
+            log.debug('closing %s: %s', self.description, exc)
+
+    def produce_heartbeat(self, node_id: int, period: float) -> None:
+        """Produce the host heartbeat (0x700 + node_id) every ``period`` s, or faster.
+
+        One producer per channel: a shorter period asked later replaces a longer
+        one (a faster heartbeat satisfies every consumer sized for the slower).
+        """
+        with self.lock:
+            if self._heartbeat is not None:
+                if node_id != self.host_node_id:
+                    raise ParameterError(
+                        f'{self.description} already produces the host heartbeat as node '
+                        f'{self.host_node_id}; transport.host_node_id {node_id} differs')
+                if period >= self.heartbeat_period - 1e-9:
+                    return
+                self._heartbeat.stop()
+                self._heartbeat = None
+            try:
+                self._heartbeat = self.network.send_periodic(
+                    0x700 + node_id, bytes((NMT_OPERATIONAL,)), period)
+            except (can.CanError, OSError, RuntimeError, NotImplementedError) as exc:
+                raise TransportError(f'cannot produce the host heartbeat on '
+                                     f'{self.description}: {exc}') from exc
+            self.host_node_id, self.heartbeat_period = node_id, period
+            log.info('%s: host heartbeat as node %d every %.0f ms', self.description, node_id,
+                     period * 1000)
+
+    def stop_heartbeat(self) -> None:
+        """Stop the host heartbeat (at close; tests use it to play a dead host)."""
+        with self.lock:
+            task, self._heartbeat = self._heartbeat, None
+            self.heartbeat_period = 0.0
+        if task is not None:
+            try:
+                task.stop()
+            except Exception as exc:  # noqa: BLE001 - a dead bus may refuse
+                log.debug('stopping the heartbeat on %s: %s', self.description, exc)
 
 
-_STRUCT = {
-    ValueType.UINT8: '<B', ValueType.INT8: '<b', ValueType.UINT16: '<H',
-    ValueType.INT16: '<h', ValueType.UINT32: '<I', ValueType.INT32: '<i',
-}
+# --- the transport ------------------------------------------------------------------------
 
 
-def encode_value(value_type: ValueType, raw: int) -> bytes:
-    low, high = value_type.bounds
-    if not low <= raw <= high:
-        raise ParameterError(f'raw value {raw} does not fit {value_type.value}')
-    return struct.pack(_STRUCT[value_type], raw)
+@dataclass
+class _Link:
+    """One node of this transport: its dictionary, its RemoteNode and its supervision."""
 
-
-def decode_value(value_type: ValueType, data: bytes) -> int:
-    size = value_type.bits // 8
-    if len(data) < size:
-        raise TransportError(f'{len(data)} bytes received for a {value_type.value}')
-    return struct.unpack(_STRUCT[value_type], bytes(data[:size]))[0]
+    unit: int
+    dictionary: od.ObjectDictionary
+    node: Any = None
+    last_heartbeat: float | None = None
+    nmt_state: int | None = None
+    not_operational: int = 0       # consecutive heartbeats not reporting Operational
+    booted: bool = False
+    supervise_timeout: float = 0.0
+    supervise_from: float = 0.0
+    subscriptions: list[tuple[int, Callable[..., None]]] = field(default_factory=list)
+    bad_tpdo: dict[int, float] = field(default_factory=dict)
 
 
 class CanopenTransport(Transport):
-    """One CANopen node on a python-can bus (socketcan, virtual, ...)."""
+    """The CANopen nodes of one CAN channel (socketcan, virtual, pcan, ...).
+
+    Shared by every drive on the channel (``shared_by_drives``): each drive
+    ``attach``-es its node id; every per-node call takes that id first.
+    """
 
     parameters = (
         TransportParameter('interface', 'socketcan',
                            'python-can interface: socketcan, virtual, ...'),
         TransportParameter('channel', 'can0', 'CAN channel (virtual: any name shared in-process)'),
         TransportParameter('bitrate', 0, 'bit/s; 0 = leave the interface as configured'),
-        TransportParameter('eds_file', '', 'optional EDS/DCF of the node (SDO type hints)'),
+        TransportParameter('eds_file', '', 'optional EDS/DCF of the nodes (object types)'),
         TransportParameter('timeout', 0.1, 's per SDO reply'),
         TransportParameter('heartbeat_ms', 0, "producer heartbeat written to 0x1017; 0 = the "
                            "profile's"),
         TransportParameter('heartbeat_timeout', 0.0, 's without heartbeat before offline; 0 = '
                            "the profile's factor x heartbeat_ms"),
+        TransportParameter('host_node_id', 127, "the host's node id: its heartbeat (0x700 + id) "
+                           "and the drives' heartbeat consumer (0x1016) use it"),
+        TransportParameter('host_heartbeat_ms', 0, 'host heartbeat period; 0 = the control '
+                           'period (10..100 ms)'),
     )
-    shared_by_drives = False   # one handle per node; bus_node opens one per drive
+    shared_by_drives = True    # one transport per channel; bus_node opens the channel once
 
     def __init__(self, interface: str = 'virtual', channel: str = 'vcan0', bitrate: int = 0,
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
-                 heartbeat_timeout: float = 0.0,
+                 heartbeat_timeout: float = 0.0, host_node_id: int = 127,
+                 host_heartbeat_ms: int = 0,
                  bus_factory: Callable[..., Any] | None = None) -> None:
         super().__init__()
         if not timeout > 0:
             raise ParameterError(f'transport.timeout must be > 0, got {timeout}')
+        if not 1 <= int(host_node_id) <= 127:
+            raise ParameterError(f'transport.host_node_id {host_node_id} is outside 1..127')
+        if not 0 <= int(host_heartbeat_ms) <= 0xFFFF:
+            raise ParameterError(f'transport.host_heartbeat_ms {host_heartbeat_ms} is outside '
+                                 '0..65535')
         self.interface = interface
-        self.channel = channel
+        self.channel_name = channel
         self.bitrate = int(bitrate)
         self.timeout = float(timeout)
         self.eds_file = eds_file
         self.heartbeat_ms = int(heartbeat_ms)
         self.heartbeat_timeout = float(heartbeat_timeout)
+        self.host_node_id = int(host_node_id)
+        self.host_heartbeat_ms = int(host_heartbeat_ms)
         self._bus_factory = bus_factory
-        self.node_id = 0
-        self.network: Any = None
-        self.node: Any = None
+        self.channel: CanChannel | None = None
+        self._links: dict[int, _Link] = {}
         self._lock = threading.Lock()
-        self._tpdo: dict[int, tuple[bytes, float]] = {}
-        self._last_heartbeat: float | None = None
-        self._nmt_state: NmtState | None = None
-        self._booted = False
-        self._not_operational = 0          # consecutive heartbeats not reporting Operational
-        self._emcy: list[Emcy] = []
-        self._supervise_timeout = 0.0
-        self._supervise_from = 0.0
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any]) -> 'CanopenTransport':
@@ -193,195 +359,309 @@ class CanopenTransport(Transport):
                    timeout=float(settings.get('timeout', 0.1) or 0.1),
                    eds_file=str(settings.get('eds_file', '') or ''),
                    heartbeat_ms=int(settings.get('heartbeat_ms', 0) or 0),
-                   heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0))
+                   heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0),
+                   host_node_id=int(settings.get('host_node_id', 127) or 127),
+                   host_heartbeat_ms=int(settings.get('host_heartbeat_ms', 0) or 0))
 
     @property
     def description(self) -> str:
-        return f'can:{self.interface}:{self.channel}'
+        return f'can:{self.interface}:{self.channel_name}'
 
-    # --- link -----------------------------------------------------------------------
+    # --- nodes and the channel --------------------------------------------------------
 
-    def attach(self, node_id: int) -> None:
-        """Select the node this transport talks to (called once by the drive)."""
-        if not 1 <= node_id <= 127:
-            raise ParameterError(f'CANopen node id {node_id} is outside 1..127')
-        self.node_id = node_id
+    def attach(self, unit: int, objects: Iterable[ObjectEntry], rpdos: int, tpdos: int) -> None:
+        """Declare node ``unit`` and the objects its PDOs carry (no I/O)."""
+        if not 1 <= unit <= 127:
+            raise ParameterError(f'CANopen node id {unit} is outside 1..127')
+        if unit == self.host_node_id:
+            raise ParameterError(f"CANopen node id {unit} is the host's own "
+                                 '(transport.host_node_id)')
+        if unit in self._links:
+            raise ParameterError(f'CANopen node id {unit} is used twice on {self.description}')
+        self._links[unit] = _Link(unit, self._dictionary(unit, list(objects), rpdos, tpdos))
+
+    def _dictionary(self, unit: int, objects: list[ObjectEntry], rpdos: int,
+                    tpdos: int) -> od.ObjectDictionary:
+        built = node_dictionary(unit, objects, rpdos, tpdos)
+        if not self.eds_file:
+            return built
+        try:
+            dictionary = canopen.import_od(self.eds_file, unit)
+        except Exception as exc:  # noqa: BLE001 - any parse error of a user file
+            raise ParameterError(f'cannot load EDS {self.eds_file}: {exc}') from exc
+        for index in built:           # what the EDS lacks, the drive's objects supply
+            if index not in dictionary:
+                dictionary.add_object(built[index])
+        return dictionary
 
     def open(self) -> None:
-        if self.network is not None:
+        """Join the channel (idempotent); the nodes are opened one by one."""
+        if self.channel is not None:
             return
-        import can
-        import canopen  # imported here: the Modbus-only installs need not load it
-        kwargs: dict[str, Any] = {'interface': self.interface, 'channel': self.channel}
-        if self.bitrate:
-            kwargs['bitrate'] = self.bitrate
         try:
-            bus = (self._bus_factory or can.Bus)(**kwargs)
-        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            self.channel = CanChannel.acquire(self.interface, self.channel_name, self.bitrate,
+                                              self._bus_factory)
+        except TransportError:
             self.stats.connect_failures += 1
-            raise TransportError(f'cannot open CAN {self.description}: {exc}') from exc
-        network = canopen.Network(bus)
-        network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
-        od: Any = canopen.ObjectDictionary()
-        if self.eds_file:
-            try:
-                od = canopen.import_od(self.eds_file, self.node_id)
-            except Exception as exc:  # noqa: BLE001 - any parse error of a user file
-                bus.shutdown()
-                raise TransportError(f'cannot load EDS {self.eds_file}: {exc}') from exc
-        node = canopen.RemoteNode(self.node_id, od)
-        node.sdo.RESPONSE_TIMEOUT = self.timeout
-        node.sdo.MAX_RETRIES = 1
-        network.add_node(node)
-        network.subscribe(0x700 + self.node_id, self._on_heartbeat)
-        network.subscribe(0x80 + self.node_id, self._on_emcy)
-        for cob in (0x180, 0x280, 0x380, 0x480):
-            network.subscribe(cob + self.node_id, self._on_tpdo)
-        with self._lock:
-            self._tpdo.clear()
-            self._last_heartbeat = None
-            self._nmt_state = None
-            self._booted = False
-            self._supervise_timeout = 0.0
-        network.connect()
-        self.network, self.node = network, node
+            raise
 
     def close(self) -> None:
-        network, self.network, self.node = self.network, None, None
-        if network is None:
-            return
-        try:
-            network.disconnect()
-        except Exception as exc:  # noqa: BLE001 - close never raises
-            log.debug('closing %s: %s', self.description, exc)
+        """Close every node of this transport and leave the channel (idempotent)."""
+        for link in self._links.values():
+            self._close_link(link)
+        channel, self.channel = self.channel, None
+        if channel is not None:
+            channel.release()
 
-    def _require(self) -> Any:
-        if self.network is None:
-            raise TransportError(f'{self.description} is not open')
-        return self.node
+    def open_node(self, unit: int) -> None:
+        """Open node ``unit`` afresh: a new RemoteNode, nothing heard from it yet."""
+        link = self._link(unit)
+        self.open()
+        if link.node is not None:
+            self._close_link(link)
+        channel = self.channel
+        node = canopen.RemoteNode(unit, link.dictionary)
+        node.sdo.RESPONSE_TIMEOUT = self.timeout
+        node.sdo.MAX_RETRIES = 1
+        node.nmt.add_heartbeat_callback(lambda state, link=link: self._on_heartbeat(link, state))
+        with self._lock:              # nothing heard yet (before frames can arrive)
+            link.last_heartbeat = link.nmt_state = None
+            link.not_operational = 0
+            link.booted = False
+            link.supervise_timeout = 0.0
+            link.bad_tpdo.clear()
+        with channel.lock:
+            if channel.network.nodes.get(unit) is not None:
+                raise ParameterError(f'CANopen node id {unit} is already driven on '
+                                     f'{self.description} by another transport')
+            channel.network.add_node(node)
+        link.node = node
+
+    def close_node(self, unit: int) -> None:
+        """Close node ``unit``; the transport leaves the channel with its last node."""
+        link = self._links.get(unit)
+        if link is not None and link.node is not None:
+            self._close_link(link)
+        if all(other.node is None for other in self._links.values()):
+            self.close()
+
+    def _close_link(self, link: _Link) -> None:
+        node, link.node = link.node, None
+        channel = self.channel
+        if node is None or channel is None:
+            return
+        network = channel.network
+        with channel.lock:
+            for cob_id, callback in link.subscriptions:
+                try:
+                    network.unsubscribe(cob_id, callback)
+                except (KeyError, ValueError):
+                    pass
+            link.subscriptions.clear()
+            if network.nodes.get(link.unit) is node:
+                del network[link.unit]
+
+    def _link(self, unit: int) -> _Link:
+        link = self._links.get(unit)
+        if link is None:
+            raise ParameterError(f'CANopen node {unit} is not attached to {self.description}')
+        return link
+
+    def _node(self, unit: int) -> Any:
+        node = self._link(unit).node
+        if node is None:
+            raise TransportError(f'node {unit} on {self.description} is not open')
+        return node
 
     # --- SDO ------------------------------------------------------------------------
 
-    def read_object(self, index: int, subindex: int, value_type: ValueType) -> int:
+    def read_object(self, unit: int, index: int, subindex: int, value_type: ValueType) -> int:
         """Expedited SDO upload of one typed value."""
-        node = self._require()
-        data = self._sdo(f'read 0x{index:04X}:{subindex:02X}',
-                         lambda: node.sdo.upload(index, subindex))
-        return decode_value(value_type, data)
+        node = self._node(unit)
+        what = f'read 0x{index:04X}:{subindex:02X}'
+        data = self._sdo(unit, what, lambda: node.sdo.upload(index, subindex))
+        size = value_type.bits // 8
+        try:
+            return _codec(index, subindex, value_type).decode_raw(bytes(data[:size]))
+        except od.ObjectDictionaryError as exc:
+            self.count(unit, 'bad_frames')
+            raise TransportError(f'{len(data)} bytes from node {unit} to {what} for a '
+                                 f'{value_type.value}') from exc
 
-    def write_object(self, index: int, subindex: int, value_type: ValueType, raw: int) -> None:
+    def write_object(self, unit: int, index: int, subindex: int, value_type: ValueType,
+                     raw: int) -> None:
         """Expedited SDO download of one typed value (1, 2 or 4 bytes)."""
-        node = self._require()
-        data = encode_value(value_type, raw)
-        self._sdo(f'write 0x{index:04X}:{subindex:02X} = {raw}',
+        node = self._node(unit)
+        try:
+            data = _codec(index, subindex, value_type).encode_raw(int(raw))
+        except ValueError as exc:
+            raise ParameterError(f'raw value {raw} does not fit {value_type.value}') from exc
+        self._sdo(unit, f'write 0x{index:04X}:{subindex:02X} = {raw}',
                   lambda: node.sdo.download(index, subindex, data))
 
-    def _sdo(self, what: str, call: Callable[[], Any]) -> Any:
-        """One SDO exchange; aborts, silence and bus errors become the driver's errors."""
-        import canopen
-        self.stats.transactions += 1
+    def _sdo(self, unit: int, what: str, call: Callable[[], Any]) -> Any:
+        """Run SDO exchanges; aborts, silence and bus errors become the driver's errors."""
+        self.count(unit, 'transactions')
         try:
             return call()
         except canopen.SdoAbortedError as exc:
-            self.stats.exceptions += 1
+            self.count(unit, 'exceptions')
             raise SdoAbort(exc.code, what) from exc
         except canopen.SdoCommunicationError as exc:
-            self._count_comm_error(exc)
-            raise CommTimeout(f'no SDO reply from node {self.node_id} to {what}: {exc}') from exc
-        except Exception as exc:  # noqa: BLE001 - can.CanError and library errors
-            self.stats.bad_frames += 1
-            raise TransportError(f'{what} on node {self.node_id} failed: {exc}') from exc
+            # The library raises this one type for silence (raised while handling its
+            # queue.Empty) and for an unexpected reply.
+            silent = isinstance(exc.__context__, queue.Empty)
+            self.count(unit, 'timeouts' if silent else 'bad_frames')
+            text = 'no SDO reply' if silent else 'unexpected SDO reply'
+            raise CommTimeout(f'{text} from node {unit} to {what}: {exc}') from exc
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self.count(unit, 'bad_frames')
+            raise TransportError(f'{what} on node {unit} failed: {exc}') from exc
+        except (KeyError, od.ObjectDictionaryError) as exc:     # e.g. an EDS without it
+            raise ProfileError(f'{what} on node {unit}: not in its object dictionary: '
+                               f'{exc}') from exc
 
-    def _count_comm_error(self, exc: Exception) -> None:
-        if 'No SDO response' in str(exc) or 'timed out' in str(exc).lower():
-            self.stats.timeouts += 1
-        else:
-            self.stats.bad_frames += 1
-
-    # --- PDO / NMT --------------------------------------------------------------------
-
-    def send(self, cob_id: int, data: bytes) -> None:
-        """Send one raw frame (RPDO, NMT)."""
-        import can
-        self._require()
-        self.stats.transactions += 1
+    def _send(self, unit: int, what: str, call: Callable[[], None]) -> None:
+        """Send frames (NMT, RPDO); a bus that refuses becomes a TransportError."""
+        self.count(unit, 'transactions')
         try:
-            self.network.send_message(cob_id, data)
-        except (can.CanError, RuntimeError, OSError) as exc:
-            self.stats.bad_frames += 1
-            raise TransportError(f'cannot send 0x{cob_id:03X} on {self.description}: '
-                                 f'{exc}') from exc
+            call()
+        except (can.CanError, OSError, RuntimeError) as exc:
+            self.count(unit, 'bad_frames')
+            raise TransportError(f'cannot send {what} on {self.description}: {exc}') from exc
 
-    def nmt(self, command: NmtCommand) -> None:
-        self.send(0x000, bytes((int(command), self.node_id)))
+    # --- NMT, PDO, EMCY ---------------------------------------------------------------
 
-    def tpdo(self, number: int) -> tuple[bytes, float] | None:
-        """Last data of TPDO ``number`` (1..4) and when it arrived, or None."""
+    def nmt(self, unit: int, state: str) -> None:
+        """Command node ``unit`` into an NMT state ('OPERATIONAL', 'PRE-OPERATIONAL', ...)."""
+        node = self._node(unit)
+        self._send(unit, f'NMT {state} to node {unit}', lambda: setattr(node.nmt, 'state', state))
+
+    def map_pdo(self, unit: int, kind: str, number: int, objects: list[ObjectEntry],
+                transmission_type: int = 255, event_timer_ms: int = 0) -> None:
+        """Configure PDO ``number`` ('rpdo'/'tpdo') over SDO; no objects: disable it."""
+        node = self._node(unit)
+        pdo = (node.rpdo if kind == 'rpdo' else node.tpdo).map[number]
+        pdo.clear()
+        for obj in objects:
+            if pdo.add_variable(obj.index, obj.subindex) is None:
+                raise ParameterError(f'{obj} is not in the object dictionary of node {unit}')
+        pdo.enabled = bool(objects)
+        pdo.trans_type = transmission_type if objects else None
+        pdo.event_timer = event_timer_ms if objects and event_timer_ms else None
+        if pdo.predefined_cob_id is not None:
+            pdo.cob_id = pdo.predefined_cob_id
+        else:
+            pdo.cob_id = self._sdo(unit, f'read {pdo.com_record.od.name}',
+                                   lambda: pdo.com_record[1].raw) & 0x1FFFFFFF
+        self._sdo(unit, f'{kind.upper()}{number} mapping', pdo.save)
+        if pdo.enabled and kind == 'tpdo':      # save() subscribed it for reception
+            link = self._link(unit)
+            link.subscriptions.append((pdo.cob_id, pdo.on_message))
+
+    def transmit(self, unit: int, number: int, raws: list[int]) -> bytes:
+        """Send RPDO ``number`` with the mapped objects' raw values; return its payload."""
+        node = self._node(unit)
+        pdo = node.rpdo.map[number]
+        try:
+            for var, raw in zip(pdo.map, raws):
+                var.raw = int(raw)
+        except ValueError as exc:
+            raise ParameterError(f'RPDO{number} of node {unit}: {exc}') from exc
+        self._send(unit, f'RPDO{number} to node {unit}', pdo.transmit)
+        return bytes(pdo.data)
+
+    def received(self, unit: int, number: int) -> list[int] | None:
+        """Raw values of TPDO ``number`` as last received (None: none yet, or malformed)."""
+        link = self._link(unit)
+        node = link.node
+        if node is None:
+            return None
+        pdo = node.tpdo.map[number]
+        stamp, data = pdo.timestamp, pdo.data      # one frame: the library replaces both
+        if stamp is None:
+            return None
+        if len(data) * 8 < pdo.length:
+            if link.bad_tpdo.get(number) != stamp:
+                link.bad_tpdo[number] = stamp
+                self.count(unit, 'bad_frames')
+            return None
+        values = []
+        for var in pdo.map:
+            start = var.offset // 8
+            values.append(var.od.decode_raw(bytes(data[start:start + var.length // 8])))
+        return values
+
+    def take_emcy(self, unit: int) -> tuple[list[EmcyError], list[EmcyError]]:
+        """Return (EMCYs received since the last call, the active ones) of node ``unit``."""
+        node = self._link(unit).node
+        if node is None:
+            return [], []
+        consumer = node.emcy
+        with consumer.emcy_received:
+            new = list(consumer.log)
+            consumer.log.clear()          # the library keeps every EMCY otherwise
+            active = list(consumer.active)
+        return new, active
+
+    # --- heartbeats -------------------------------------------------------------------
+
+    def host_heartbeat_period(self, interval: float) -> float:
+        """Host heartbeat period: the setting, or ``interval`` (the control period) in bounds."""
+        if self.host_heartbeat_ms:
+            return self.host_heartbeat_ms / 1000.0
+        period = math.ceil(interval * 1000 - 1e-6) / 1000.0
+        return min(max(period, HOST_HEARTBEAT_MIN), HOST_HEARTBEAT_MAX)
+
+    def produce_heartbeat(self, period: float) -> None:
+        """Produce the host heartbeat on this channel (once per channel; see CanChannel)."""
+        if self.channel is None:
+            raise TransportError(f'{self.description} is not open')
+        self.channel.produce_heartbeat(self.host_node_id, period)
+
+    def supervise(self, unit: int, timeout: float) -> None:
+        """Start the host-side consumer of node ``unit``'s heartbeat (0 = off)."""
+        link = self._link(unit)
         with self._lock:
-            return self._tpdo.get(number)
+            link.supervise_timeout = timeout
+            link.supervise_from = time.monotonic()
+            link.booted = False
+            link.not_operational = 0
 
-    def supervise(self, timeout: float) -> None:
-        """Start the host-side heartbeat consumer (0 = off)."""
-        with self._lock:
-            self._supervise_timeout = timeout
-            self._supervise_from = time.monotonic()
-            self._booted = False
-            self._not_operational = 0
+    def check_alive(self, unit: int) -> str | None:
+        """Raise when node ``unit``'s heartbeat is lost or it rebooted; return its NMT state.
 
-    def check_alive(self) -> NmtState | None:
-        """Raise when the node's heartbeat is lost or it rebooted; return its NMT state.
-
-        The state is returned only once two heartbeats in a row agree (one may have
-        been in flight when an NMT command was sent).
+        The state (the library's name, e.g. 'OPERATIONAL') is returned only once two
+        heartbeats in a row agree (one may have been in flight when an NMT command
+        was sent).
         """
+        link = self._link(unit)
         with self._lock:
-            timeout = self._supervise_timeout
-            last = self._last_heartbeat
-            booted = self._booted
-            state = self._nmt_state if (self._nmt_state is NmtState.OPERATIONAL or
-                                        self._not_operational >= 2) else None
-            since = self._supervise_from
+            timeout, last, booted = link.supervise_timeout, link.last_heartbeat, link.booted
+            since, state = link.supervise_from, link.nmt_state
+            confirmed = state == NMT_OPERATIONAL or link.not_operational >= 2
         if booted:
-            raise TransportError(f'node {self.node_id} sent a boot-up: it reset and must be '
+            raise TransportError(f'node {unit} sent a boot-up: it reset and must be '
                                  're-configured')
         if timeout > 0:
             age = time.monotonic() - max(last or 0.0, since)
             if age > timeout:
-                self.stats.timeouts += 1
-                raise CommTimeout(f'no heartbeat from node {self.node_id} for {age:.2f} s '
+                self.count(unit, 'timeouts')
+                raise CommTimeout(f'no heartbeat from node {unit} for {age:.2f} s '
                                   f'(consumer timeout {timeout:.2f} s)')
-        return state
+        if state is None or not confirmed:
+            return None
+        return NMT_STATES.get(state, f'0x{state:02X}')
 
-    def take_emcy(self) -> list[Emcy]:
+    def _on_heartbeat(self, link: _Link, state: int) -> None:
+        """Library heartbeat callback (notifier thread): stamp it on this host's clock.
+
+        ``nmt.timestamp`` is the frame's time from the adapter, which need not be
+        this host's monotonic clock; the reception time here is.
+        """
         with self._lock:
-            frames, self._emcy = self._emcy, []
-        return frames
-
-    # --- receive callbacks (the notifier thread) ----------------------------------------
-
-    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) < 1:
-            self.stats.bad_frames += 1
-            return
-        try:
-            state = NmtState(data[0] & 0x7F)
-        except ValueError:
-            state = None
-        with self._lock:
-            self._last_heartbeat = time.monotonic()
-            self._nmt_state = state
-            self._not_operational = 0 if state is NmtState.OPERATIONAL else \
-                self._not_operational + 1
-            if state is NmtState.BOOT_UP and self._supervise_timeout > 0:
-                self._booted = True
-
-    def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        frame = Emcy.decode(bytes(data), time.monotonic())
-        with self._lock:
-            self._emcy.append(frame)
-            del self._emcy[:-16]
-
-    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        number = {0x180: 1, 0x280: 2, 0x380: 3, 0x480: 4}[can_id - self.node_id]
-        with self._lock:
-            self._tpdo[number] = (bytes(data), time.monotonic())
+            link.last_heartbeat = time.monotonic()
+            link.nmt_state = state
+            link.not_operational = 0 if state == NMT_OPERATIONAL else link.not_operational + 1
+            if state == 0 and link.supervise_timeout > 0:
+                link.booted = True
