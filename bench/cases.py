@@ -596,8 +596,9 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
                                        + log.read().decode(errors='replace')[-800:])
                 spin_for(0.1)
             spin_for(1.0)
-            # One shared transport: every drive's status carries the bus's counters.
-            tx0 = max(s.transactions for s in last.values())
+            # Each drive's status carries its own counters (Transport.stats_for): the
+            # line's transactions are their sum.
+            tx0 = sum(s.transactions for s in last.values())
             threads0 = _thread_cpu(child.pid)
             cpu0, start = _proc_cpu_seconds(child.pid), time.monotonic()
             spy = None
@@ -609,8 +610,8 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
             result['cpu_percent_by_thread'] = {
                 name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
                 for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0}
-            tx1 = max(s.transactions for s in last.values())
-            result['comm_errors'] = max(s.comm_errors for s in last.values())
+            tx1 = sum(s.transactions for s in last.values())
+            result['comm_errors'] = sum(s.comm_errors for s in last.values())
             result['rss_mb'] = round(_proc_rss_mb(child.pid), 1)
             if spy is not None:
                 result['pyspy_top'] = _finish_pyspy(spy)

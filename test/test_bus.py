@@ -290,3 +290,11 @@ def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_
         executor.shutdown(timeout_sec=1.0)
         line.stop()
     assert not [c for c in open_channels() if c.key[1] == channel]     # closed with the bus
+
+
+@pytest.mark.parametrize('key', ['control_rate', 'realtime_priority'])
+def test_a_drive_entry_cannot_set_what_the_bus_thread_owns(key):
+    """One thread runs every drive of a bus: its rate and priority are the bus's settings."""
+    with pytest.raises(ParameterError, match=f'drive d1: {key} belongs to the bus'):
+        parse_bus_config({'bus': {'transport.type': 'modbus_rtu'},
+                          'drives': {'d1': {key: 10}}})

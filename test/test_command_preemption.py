@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import math
+import os
+import time
+
+from diagnostic_msgs.msg import DiagnosticStatus
 
 from unit_support import MemoryTransport, shipped_profile
 from vfd_ros2.control.controller import ControllerConfig, DriveController
 from vfd_ros2.control.loop import CycleLoop
 from vfd_ros2.drives.modbus import ModbusDrive
 from vfd_ros2.protocol.scaling import VelocityScaling
+from vfd_ros2.ros.messages import diagnostic_status
 
 SETPOINT = 0xE721    # BONENG AM P07.33
 
@@ -231,3 +236,51 @@ def test_one_silent_commander_never_broadcasts_a_stop_to_the_others(tmp_path):
     finally:
         bus.shutdown()
         line.stop()
+
+
+def test_realtime_priority_runs_the_loop_thread_under_sched_fifo():
+    """A loaded machine must not delay a fast loop's wake-ups: SCHED_FIFO where allowed."""
+    seen: list[int] = []
+    loop = CycleLoop('rt', 0.01, lambda: seen.append(os.sched_getscheduler(0)), lambda: None,
+                     priority=7)
+    loop.start()
+    try:
+        deadline = time.monotonic() + 2.0
+        while len(seen) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        loop.stop()
+    if loop.notes:      # an unprivileged runner: the refusal must be what is reported
+        assert 'realtime_priority 7 refused' in loop.notes[0]
+        assert seen[-1] != os.SCHED_FIFO
+    else:
+        assert seen[-1] == os.SCHED_FIFO
+    assert os.sched_getscheduler(0) != os.SCHED_FIFO       # only the loop thread
+
+
+def test_a_refused_realtime_priority_is_a_diagnostics_warning(monkeypatch):
+    def refuse(*_args):
+        raise PermissionError(1, 'Operation not permitted')
+    monkeypatch.setattr(os, 'sched_setscheduler', refuse)
+    transport = MemoryTransport()
+    profile = shipped_profile('boneng_am')
+    transport.registers[0xE101] = 1
+    drive = ModbusDrive(profile, transport, 1, VelocityScaling(gear_ratio=10.0,
+                                                               rated_speed_rpm=1330.0))
+    controller = DriveController(drive, ControllerConfig(realtime_priority=20,
+                                                         apply_commissioning=False))
+    controller.start()
+    try:
+        deadline = time.monotonic() + 2.0
+        while not (controller.state.online and controller.state.link_notes) and \
+                time.monotonic() < deadline:
+            time.sleep(0.01)
+        state = controller.state
+        notes = state.link_notes
+    finally:
+        controller.shutdown()
+    assert any('realtime_priority 20 refused' in note and 'not permitted' in note
+               for note in notes), notes
+    status = diagnostic_status(state, 'drive', ever_online=True)
+    assert status.level == DiagnosticStatus.WARN
+    assert 'realtime_priority 20 refused' in status.message

@@ -220,3 +220,9 @@ def test_prefixed_settings_strip_the_prefix():
               'drive.object_set': 'ds402'}
     assert config.prefixed(values, 'transport') == {'port': '/dev/x', 'unit_id': 2}
     assert config.prefixed(values, 'drive') == {'object_set': 'ds402'}
+
+
+@pytest.mark.parametrize('value', [-1, 100])
+def test_realtime_priority_outside_sched_fifo_range_is_refused(value):
+    with pytest.raises(ParameterError, match='realtime_priority must be 0..99'):
+        ControllerConfig(realtime_priority=value)

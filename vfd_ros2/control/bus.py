@@ -28,7 +28,7 @@ from .settings import SETTINGS
 log = logging.getLogger(__name__)
 
 #: settings that belong to the bus, not to one drive
-BUS_KEYS = ('control_rate',)
+BUS_KEYS = ('control_rate', 'realtime_priority')
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,8 @@ def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
         namespace = str(settings.pop('namespace', f'/{key}'))
         node_name = str(settings.pop('name', 'drive'))
         for setting in settings:
-            if setting.startswith('transport.') and setting != 'transport.unit_id':
+            if (setting.startswith('transport.') and setting != 'transport.unit_id') or \
+                    setting in BUS_KEYS:
                 raise ParameterError(f'drive {key}: {setting} belongs to the bus')
             if not setting.startswith('transport.') and setting not in known:
                 raise ParameterError(f'drive {key}: unknown setting {setting!r}')
@@ -213,10 +214,13 @@ class Bus:
         if self._loop is None:
             self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
                                    self.finish, self._clock, preempt=self.preempt,
-                                   preempt_at=self.preempt_at)
+                                   preempt_at=self.preempt_at,
+                                   priority=int(self.config.settings.get('realtime_priority', 0)))
             for controller in self.controllers.values():
                 controller.request_preempt = self._loop.request_preempt
             self._loop.start()
+            for controller in self.controllers.values():
+                controller.loop_notes = self._loop.notes
 
     def shutdown(self, timeout: float = 3.0) -> None:
         if self._loop is not None:

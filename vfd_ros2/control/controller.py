@@ -55,6 +55,7 @@ class ControllerConfig:
     action_timeout: float = 2.0       # s to verify enable / reset
     stop_timeout: float = 10.0        # s to verify stop / disable (deceleration)
     at_speed_tolerance: float = 0.1   # rad/s
+    realtime_priority: int = 0        # SCHED_FIFO priority of the control thread; 0 = off
 
     def __post_init__(self) -> None:
         for name in ('command_timeout', 'cycle_period', 'reconnect_period', 'action_timeout',
@@ -68,6 +69,8 @@ class ControllerConfig:
             raise ParameterError(f'drive_comm_timeout must be >= 0, got {self.drive_comm_timeout}')
         if self.comm_loss_threshold < 1:
             raise ParameterError('comm_loss_threshold must be >= 1')
+        if not 0 <= self.realtime_priority <= 99:
+            raise ParameterError(f'realtime_priority must be 0..99, got {self.realtime_priority}')
 
 
 class DriveController:
@@ -96,6 +99,8 @@ class DriveController:
             drive, self.intent, lambda: self._reading, self._commands_fresh,
             self.check_parameter_write, config.action_timeout, config.stop_timeout, clock)
         self._loop: CycleLoop | None = None
+        #: what to know about the thread that runs this drive (its own, or a bus's)
+        self.loop_notes: tuple[str, ...] = ()
         self._stopped_loop_errors = 0
         self._cycle_ok = False
         self._command_pending = False
@@ -221,9 +226,11 @@ class DriveController:
         if self._loop is None:
             self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
                                    self.step, self.finish, self._clock, preempt=self.preempt,
-                                   preempt_at=self.preempt_at)
+                                   preempt_at=self.preempt_at,
+                                   priority=self.config.realtime_priority)
             self.request_preempt = self._loop.request_preempt
             self._loop.start()
+            self.loop_notes = self._loop.notes
 
     def shutdown(self, timeout: float = 2.0) -> None:
         """Stop the loop; the drive is commanded to stop before the link closes."""
@@ -517,7 +524,7 @@ class DriveController:
             link_error=self.link.error,
             protection=self.protection_applied or self.protection,
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
-            link_notes=self.drive.transport.link_notes,
+            link_notes=self.drive.transport.link_notes + self.loop_notes,
         )
         with self._lock:
             self._state = snapshot

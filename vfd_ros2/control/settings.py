@@ -37,6 +37,10 @@ SETTINGS: tuple[Setting, ...] = (
     Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped'),
     Setting('command_timeout', 0.5, 's without a valid velocity command before the drive stops'),
     Setting('control_rate', 50.0, 'Hz of the command/poll cycle'),
+    Setting('realtime_priority', 0,
+            'SCHED_FIFO priority (1..99) of the control thread, so that a loaded machine '
+            'cannot delay its cycles; 0 = normal scheduling. Needs CAP_SYS_NICE or an '
+            'rtprio limit; a refusal is a diagnostics warning'),
     Setting('status_rate', 20.0, 'Hz of ~/status'),
     Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics'),
     Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline'),
@@ -91,4 +95,5 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
         auto_enable=bool(values['auto_enable']),
         action_timeout=float(values['action_timeout']),
         stop_timeout=float(values['stop_timeout']),
+        realtime_priority=int(values['realtime_priority']),
     )
