@@ -42,11 +42,12 @@ from ..drives.identify import (
     candidate_framings,
     documented_framings,
     identify,
+    profile_named,
     read_answer,
     reported_framing,
 )
 from ..errors import TransportError, VfdError
-from ..profiles import Profile, available_profiles, load_profile
+from ..profiles import Profile, available_profiles
 from ..protocol.registers import decode_words
 from ..protocol.rtu_timing import character_time, frame_gap
 from ..transports.base import RegisterTransport
@@ -204,7 +205,7 @@ def _examine(transport: RegisterTransport, unit: int, first: Answer, probe: tupl
     identification = identify(profiles, read, framing)
     identity = ''
     if identification.known:
-        identity = _identity_text(load_profile(identification.profile), read)
+        identity = _identity_text(profile_named(identification.profile), read)
     return identification, identity
 
 
@@ -294,7 +295,7 @@ def scan_rtu(port: str, profiles: Sequence[Profile], ids: Sequence[int], budget:
         finally:
             transport.close()
         for unit, identification, identity, note in results:
-            profile = load_profile(identification.profile) if identification.known else None
+            profile = profile_named(identification.profile) if identification.known else None
             notes = tuple(n for n in (note, *identification.notes) if n)
             report.found.append(Found('modbus_rtu', port, unit, identification,
                                       reported_framing(profile, framing), identity=identity,
@@ -343,7 +344,7 @@ def scan_tcp(targets: Sequence[TcpTarget], profiles: Sequence[Profile], ids: Seq
         for unit, identification, identity, note in results:
             notes = [n for n in (note, *identification.notes) if n]
             if identification.known and \
-                    'modbus_tcp' not in load_profile(identification.profile).transports:
+                    'modbus_tcp' not in profile_named(identification.profile).transports:
                 notes.append('a serial drive: behind a Modbus TCP gateway?')
             report.found.append(Found('modbus_tcp', where, unit, identification,
                                       host=target.host, port=target.port, identity=identity,
@@ -528,7 +529,7 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
             raise ScanError('name at least one link: --port, --tcp or --can')
         names = [n.strip() for n in args.profiles.split(',') if n.strip()] or \
             available_profiles()
-        profiles = [load_profile(name) for name in names]
+        profiles = [profile_named(name) for name in names]
         ids = parse_ids(args.ids or '1-247')
         baudrates = [int(b) for b in args.baudrates.split(',') if b.strip()] \
             if args.baudrates else []

@@ -20,12 +20,20 @@ setting of every family first, then the options their manuals document.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
 from ..errors import BadFrame, CommTimeout, ProtocolException
-from ..profiles import IdentifyCheck, IdentifyExpect, Profile
+from ..profiles import IdentifyCheck, IdentifyExpect, Profile, load_profile
 from ..transports.base import RegisterTransport
+
+
+@functools.lru_cache(maxsize=None)
+def profile_named(name: str) -> Profile:
+    """Load a profile once per process (the tools look families up by name again and again)."""
+    return load_profile(name)
+
 
 #: confidence levels, weakest first
 CONFIDENCE = ('none', 'low', 'medium', 'high')
