@@ -289,3 +289,35 @@ def test_canopen_scan_hears_heartbeats_and_probes_the_silent_nodes(tmp_path):
 def test_canopen_scan_of_an_unknown_interface_is_a_clear_error():
     code, _, err = scan(['--can', 'no_such_interface:x'])
     assert code == FAILED and 'cannot open CAN bus' in err
+
+
+# --- no ROS on the technician's laptop ---------------------------------------------------------
+
+def test_both_tools_run_as_installed_executables_without_ros(mixed_line, tmp_path):
+    import os
+    import shutil
+    import subprocess
+    line, _ = mixed_line
+    # An rclpy that cannot be imported: the tools must not need it on a line.
+    poison = tmp_path / 'poison' / 'rclpy'
+    poison.mkdir(parents=True)
+    (poison / '__init__.py').write_text("raise ImportError('rclpy must not be imported')\n")
+    env = {**os.environ, 'PYTHONPATH': os.pathsep.join(
+        [str(poison.parent), os.environ.get('PYTHONPATH', '')])}
+    scan_exe, params_exe = shutil.which('vfd_scan'), shutil.which('vfd_params')
+    assert scan_exe and params_exe, 'vfd_scan / vfd_params not installed (setup.cfg)'
+    done = subprocess.run([scan_exe, '--port', str(line.link_path), '--ids', '1-2',
+                           '--baudrates', '115200', '--quiet'], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == FOUND, done.stdout + done.stderr
+    assert 'boneng_am' in done.stdout and 'boneng_mh' in done.stdout
+    done = subprocess.run([params_exe, 'dump', '--port', str(line.link_path), '--unit', '2',
+                           '--profile', 'boneng_mh', '-o', str(tmp_path / 'mh.yaml')],
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert (tmp_path / 'mh.yaml').exists()
+    done = subprocess.run([params_exe, 'dump', '--node', '/nobody/drive', '-o',
+                           str(tmp_path / 'x.yaml')], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2 and '--node needs ROS 2' in done.stderr, done.stderr
+    assert 'rclpy must not be imported' in done.stderr

@@ -259,7 +259,11 @@ def detect_profile(args: argparse.Namespace) -> Profile:
 def _open(args: argparse.Namespace, profile: Profile | None, out: TextIO) -> Any:
     """Return an open access: through the node, or directly (checked against the family)."""
     if args.node:
-        from .params_node import NodeAccess  # rclpy only in this mode
+        try:
+            from .params_node import NodeAccess  # rclpy only in this mode
+        except ImportError as exc:
+            raise Refused(f'--node needs ROS 2 (rclpy and the vfd_ros2 interfaces): {exc}; '
+                          'on a line without ROS use --port, --host or --can') from exc
         access = NodeAccess(args.node, timeout=args.node_timeout)
         if profile is not None and access.profile.name != profile.name:
             access.close()
