@@ -248,6 +248,7 @@ def test_a_drive_that_refuses_a_write_midway_halts_and_is_left_stopped(make_line
     assert line.sim.value(first) == profile.parameter(first).default   # written
     for code, value in changed.items():
         assert line.sim.value(code) == value                           # not written
+    assert line.sim.value('C02.07') == 0            # the RAM write's switch, set back
     assert line.sim.last_command_value == profile.control.values['stop']
     assert not line.sim.run_requested and not line.sim.output_active
 
@@ -553,3 +554,20 @@ def test_dump_diff_restore_through_a_running_drive_node(make_harness, tmp_path):
     take_backup(DictAccess(shipped_profile('boneng_am'))).save(other)
     code, _, err = params(['restore', other, '--node', node])
     assert code == FAILED and 'runs profile imo_hd2; this file is for boneng_am' in err
+
+
+def test_a_backup_of_a_profile_from_its_own_file_finds_that_file_again(tmp_path):
+    import shutil
+
+    from vfd_ros2.profiles import PROFILE_DIR, load_profile
+    for name in ('kinco_ec.yaml', 'kinco_ec_parameters.yaml', 'schema.json'):
+        shutil.copy(PROFILE_DIR / name, tmp_path / name)
+    custom = tmp_path / 'my_kinco.yaml'
+    (tmp_path / 'kinco_ec.yaml').rename(custom)
+    custom.write_text(custom.read_text().replace('name: kinco_ec', 'name: my_kinco', 1))
+    profile = load_profile(str(custom))
+    backup = take_backup(DictAccess(profile))
+    backup.save(tmp_path / 'b.yaml')
+    loaded = Backup.load(tmp_path / 'b.yaml')
+    assert loaded.profile == 'my_kinco' and loaded.profile_file == str(custom.resolve())
+    assert loaded.family.name == 'my_kinco' and compare(backup, loaded) == []

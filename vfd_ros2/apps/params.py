@@ -319,7 +319,7 @@ def cmd_diff(args: argparse.Namespace, out: TextIO) -> int:
     if args.other:
         right, names = Backup.load(args.other), (str(args.file), str(args.other))
     else:
-        profile = profile_named(left.profile)
+        profile = left.family
         codes = [c for c in left.entries if args.all or is_setting(profile, c)]
         access = _open(args, profile, out)
         try:
@@ -339,7 +339,7 @@ def cmd_diff(args: argparse.Namespace, out: TextIO) -> int:
 
 def cmd_restore(args: argparse.Namespace, out: TextIO) -> int:
     backup = Backup.load(args.file)
-    profile = profile_named(backup.profile)
+    profile = backup.family
     if args.profile and profile_named(args.profile).name != profile.name:
         raise Refused(f'--profile {args.profile} but the file is for {profile.name}')
     access = _open(args, profile, out)

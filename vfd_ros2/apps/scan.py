@@ -285,7 +285,8 @@ def scan_rtu(port: str, profiles: Sequence[Profile], ids: Sequence[int], budget:
         try:
             transport.open()
         except TransportError as exc:
-            raise ScanError(f'cannot open the serial port {port}: {exc}') from exc
+            raise ScanError(f'cannot open the serial port {port}: {exc} (another program, '
+                            'e.g. a bus_node, may hold it)') from exc
         try:
             skip = found_at_baud.setdefault(framing.baudrate, set())
             results, stopped = _sweep(

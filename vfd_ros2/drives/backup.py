@@ -44,7 +44,7 @@ from ..errors import (
     TransportError,
     VfdError,
 )
-from ..profiles import Access, Parameter, PersistenceKind, Profile
+from ..profiles import PROFILE_DIR, Access, Parameter, PersistenceKind, Profile
 from .base import ParameterValue
 from .identify import profile_named
 
@@ -119,11 +119,18 @@ class Backup:
     entries: dict[str, Entry] = field(default_factory=dict)    # code -> entry, table order
     unreadable: dict[str, str] = field(default_factory=dict)   # code -> why
     unknown: dict[str, str] = field(default_factory=dict)      # codes the profile lacks
+    profile_file: str = ''       # the profile's file when it is not a shipped one
+
+    @property
+    def family(self) -> Profile:
+        """Return the profile the values belong to (shipped by name, else by its file)."""
+        return profile_named(self.profile_file or self.profile)
 
     def to_document(self) -> dict[str, Any]:
         return {
             'format': FORMAT,
             'profile': self.profile,
+            **({'profile_file': self.profile_file} if self.profile_file else {}),
             'model': self.model,
             'identity': {code: _clean(value) for code, value in self.identity.items()},
             'source': self.source,
@@ -160,10 +167,11 @@ class Backup:
         if not isinstance(data, Mapping) or data.get('format') != FORMAT:
             raise ParameterError(f'{where} is not a vfd_params backup (format: {FORMAT})')
         try:
-            profile = profile_named(str(data['profile']))
+            profile = profile_named(str(data.get('profile_file') or data['profile']))
         except (KeyError, ProfileError) as exc:
             raise ParameterError(f'{where}: its drive profile cannot be loaded: {exc}') from exc
-        backup = cls(profile=profile.name, model=str(data.get('model', '')),
+        backup = cls(profile=profile.name, profile_file=str(data.get('profile_file') or ''),
+                     model=str(data.get('model', '')),
                      identity={str(k): float(v) for k, v in (data.get('identity') or {}).items()},
                      source=str(data.get('source', '')), taken=str(data.get('taken', '')),
                      unreadable={str(k): str(v) for k, v in
@@ -202,7 +210,10 @@ def take_backup(access: ParameterAccess, codes: list[str] | None = None,
     reads in a row) raises CommTimeout.
     """
     profile = access.profile
+    shipped = Path(profile.source_file).resolve().parent == PROFILE_DIR
     backup = Backup(profile=profile.name, model=profile.model, source=access.description,
+                    profile_file='' if shipped or not profile.source_file else
+                    str(Path(profile.source_file).resolve()),
                     taken=datetime.datetime.now(datetime.timezone.utc).isoformat(
                         timespec='seconds'))
     wanted = codes if codes is not None else list(profile.parameters)
@@ -259,7 +270,7 @@ def compare(left: Backup, right: Backup, settings_only: bool = True) -> list[Dif
     if left.profile != right.profile:
         raise ParameterError(f'the two sides are different families ({left.profile} and '
                              f'{right.profile}): their parameters do not correspond')
-    profile = profile_named(left.profile)
+    profile = left.family
     differences = []
     for code, parameter in profile.parameters.items():
         if settings_only and not is_setting(profile, code):
@@ -451,29 +462,36 @@ def execute(plan: RestorePlan, access: ParameterAccess, persistent: bool,
         if problem:
             result.failed = (step, problem)
             result.not_written = plan.steps[number + 1:]
+            if plan.switch is not None and result.written:
+                try:                             # the writes so far flipped it: set it back
+                    _switch_back(plan, access, persistent, result, progress)
+                except VfdError as exc:
+                    problem += f'; {plan.switch[0]} (RAM/EEPROM switch) not set back: {exc}'
+                    result.failed = (step, problem)
             result.stop = access.stop()
             return result
     if plan.switch is not None and result.written and not result.not_written:
-        _restore_switch(plan, access, persistent, result, progress)
+        try:
+            _switch_back(plan, access, persistent, result, progress)
+        except VfdError as exc:
+            code, value = plan.switch
+            parameter = plan.profile.parameter(code)
+            result.failed = (Step(code, parameter.name, value, '?', 'persistence', False),
+                             f'{code} (RAM/EEPROM switch) not set back: {exc}')
+            result.stop = access.stop()
     return result
 
 
-def _restore_switch(plan: RestorePlan, access: ParameterAccess, persistent: bool,
-                    result: RestoreResult, progress: Callable[[str], None]) -> None:
+def _switch_back(plan: RestorePlan, access: ParameterAccess, persistent: bool,
+                 result: RestoreResult, progress: Callable[[str], None]) -> None:
     """Set the RAM/EEPROM switch back to the file's value if the writes flipped it."""
     code, value = plan.switch
     parameter = plan.profile.parameter(code)
-    try:
-        current = access.read(code)
-        if current.raw == round(value / parameter.scale):
-            return
-        step = Step(code, parameter.name, value, f'{_clean(current.value)}{parameter.unit}',
-                    'persistence', False)
-        written, note = access.write(code, value, persistent)
-    except VfdError as exc:
-        result.failed = (Step(code, parameter.name, value, '?', 'persistence', False),
-                         f'{code} (RAM/EEPROM switch) not set back: {exc}')
-        result.stop = access.stop()
+    current = access.read(code)
+    if current.raw == round(value / parameter.scale):
         return
+    step = Step(code, parameter.name, value, f'{_clean(current.value)}{parameter.unit}',
+                'persistence', False)
+    written, note = access.write(code, value, persistent)
     result.written.append((step, written, note or 'set back as in the file'))
     progress(f'wrote {step.shown(plan.profile)} (the RAM/EEPROM switch, as in the file)')
