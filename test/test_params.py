@@ -571,3 +571,15 @@ def test_a_backup_of_a_profile_from_its_own_file_finds_that_file_again(tmp_path)
     loaded = Backup.load(tmp_path / 'b.yaml')
     assert loaded.profile == 'my_kinco' and loaded.profile_file == str(custom.resolve())
     assert loaded.family.name == 'my_kinco' and compare(backup, loaded) == []
+
+
+def test_a_drive_whose_run_state_cannot_be_read_is_not_restored(make_line, tmp_path):
+    line = make_line('boneng_am')
+    backup_file = tmp_path / 'am.yaml'
+    assert params(['dump', *line.link, '--profile', 'boneng_am', '-o', backup_file])[0] == DONE
+    line.set('B04.02', 9.0)
+    line.sim.refuse(['P01.02'])              # a firmware that does not give its running flag
+    assert params(['restore', backup_file, *line.link])[0] == DONE      # the plan is shown
+    code, _, err = params(['restore', backup_file, *line.link, '--write', 'ram'])
+    assert code == FAILED and 'run state cannot be read' in err, err
+    assert line.writes() == []

@@ -321,3 +321,40 @@ def test_both_tools_run_as_installed_executables_without_ros(mixed_line, tmp_pat
                           timeout=60)
     assert done.returncode == 2 and '--node needs ROS 2' in done.stderr, done.stderr
     assert 'rclpy must not be imported' in done.stderr
+
+
+def test_canopen_scan_hears_a_boot_up_while_it_listens():
+    import threading
+    import uuid
+
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+
+    class Watched(io.StringIO):
+        """stderr that says when the scan has started listening."""
+
+        listening = threading.Event()
+
+        def write(self, text: str) -> int:
+            if 'listening' in text:
+                self.listening.set()
+            return super().write(text)
+    channel = f'boot{uuid.uuid4().hex[:8]}'
+    out, err = io.StringIO(), Watched()
+    codes = []
+    scanner = threading.Thread(target=lambda: codes.append(run(
+        ['--can', f'virtual:{channel}', '--listen', '1.5'], stdout=out, stderr=err)))
+    scanner.start()
+    bus = None
+    try:
+        assert err.listening.wait(5.0), 'the scan did not start listening'
+        # The drive powers up while the scan listens: its boot-up names it.
+        bus = SimulatedCanBus([SimulatedCanopenDrive(shipped_profile('cia402_velocity'), 9)],
+                              channel).start()
+        scanner.join(10.0)
+    finally:
+        scanner.join(10.0)
+        if bus is not None:
+            bus.stop()
+    assert codes == [FOUND], out.getvalue() + err.getvalue()
+    row = rows(out.getvalue())[9]
+    assert row[3] == 'cia402_velocity' and 'NMT boot-up' in row[6], row

@@ -380,6 +380,9 @@ def _restore(args: argparse.Namespace, backup: Backup, access: Any, out: TextIO)
     if running:
         raise Refused('the drive reports running: stop it first (a restore writes only to a '
                       'stopped drive)')
+    if running is None:
+        raise Refused("the drive's run state cannot be read (offline, or it refuses its "
+                      'running flag): a restore writes only to a drive that reports stopped')
     before = access.stop()
     print(f'  before writing: {before}', file=out)
     result = execute(plan, access, args.write == 'eeprom',

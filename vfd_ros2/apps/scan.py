@@ -463,6 +463,8 @@ def bus_documents(found: Sequence[Found]) -> list[tuple[str, dict[str, Any], lis
 def write_yaml(found: Sequence[Found], path: Path, progress: Progress) -> list[Path]:
     """Write one bus_node file per link: ``path`` itself when there is one link."""
     documents = bus_documents(found)
+    if not documents:
+        progress('no identified drive: no bus file written')
     written = []
     for name, document, comments in documents:
         target = path if len(documents) == 1 else path.with_name(
