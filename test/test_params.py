@@ -337,7 +337,9 @@ def test_bad_input_gives_a_clear_message(make_line, tmp_path):
             (['restore', wrong, *line.link], "unknown drive profile 'no_such_drive'"),
             (['restore', other, *line.link], 'is not a vfd_params backup'),
             (['dump', '--host', '127.0.0.1', '--tcp-port', '1', '--profile', 'imo_hd2', '-o',
-              tmp_path / 'x.yaml'], 'cannot')):
+              tmp_path / 'x.yaml'], 'cannot'),
+            (['dump', *line.link, '--unit', 7, '--profile', 'boneng_am', '-o',
+              tmp_path / 'x.yaml'], 'nothing answers at unit 7')):
         code, out, err = params(argv)
         assert code == FAILED and message in err, (argv, out, err)
     assert line.writes() == []
@@ -553,7 +555,7 @@ def test_dump_diff_restore_through_a_running_drive_node(make_harness, tmp_path):
     other = tmp_path / 'am.yaml'
     take_backup(DictAccess(shipped_profile('boneng_am'))).save(other)
     code, _, err = params(['restore', other, '--node', node])
-    assert code == FAILED and 'runs profile imo_hd2; this file is for boneng_am' in err
+    assert code == FAILED and 'runs profile imo_hd2, not boneng_am' in err, err
 
 
 def test_a_backup_of_a_profile_from_its_own_file_finds_that_file_again(tmp_path):

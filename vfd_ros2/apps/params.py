@@ -220,6 +220,10 @@ def check_family(access: ParameterAccess, unit: int) -> str:
 
     def read(address: int, count: int):
         return read_answer(transport, unit, address, count)
+    probe = read(profile.identify.modbus.probe_address, profile.identify.modbus.probe_count)
+    if not probe.heard:
+        raise Refused(f'nothing answers at unit {unit} on {transport.description}: check the '
+                      'unit id, the framing (vfd_scan finds both) and the wiring')
     own = identify([profile], read)
     if own.profile == profile.name:
         return f'identifies as {profile.name} ({own.evidence})'
@@ -228,8 +232,8 @@ def check_family(access: ParameterAccess, unit: int) -> str:
                     read)
     shown = f'{seen.profile} ({seen.confidence})' if seen.known else \
         f'no known family ({seen.evidence})'
-    raise Refused(f'the drive at unit {unit} does not identify as {profile.name}: it answers '
-                  f'like {shown}; this file is for {profile.name}')
+    raise Refused(f'the drive at unit {unit} does not identify as {profile.name} (it answers '
+                  f'like {shown}): a {profile.name} file or profile does not fit it')
 
 
 def detect_profile(args: argparse.Namespace) -> Profile:
@@ -265,17 +269,19 @@ def _open(args: argparse.Namespace, profile: Profile | None, out: TextIO) -> Any
             raise Refused(f'--node needs ROS 2 (rclpy and the vfd_ros2 interfaces): {exc}; '
                           'on a line without ROS use --port, --host or --can') from exc
         access = NodeAccess(args.node, timeout=args.node_timeout)
+        if profile is None and args.profile:
+            profile = profile_named(args.profile)
         if profile is not None and access.profile.name != profile.name:
             access.close()
-            raise Refused(f'{args.node} runs profile {access.profile.name}; this file is for '
-                          f'{profile.name}')
+            raise Refused(f'{args.node} runs profile {access.profile.name}, not '
+                          f'{profile.name}: a {profile.name} file does not fit it')
         return access
     if profile is None:
         profile = profile_named(args.profile) if args.profile else detect_profile(args)
     access = open_direct(args, profile)
     try:
         note = check_family(access, args.unit)
-    except (Refused, VfdError):
+    except VfdError:
         access.close()
         raise
     print(f'{access.description}: {note}', file=out)

@@ -98,9 +98,11 @@ class Framing:
     def key(self) -> tuple[int, str, int]:
         """Return what a receiver can tell apart: baud rate, parity, data bits (not stop bits).
 
-        A UART samples only the first stop bit, so a frame sent with two stop bits
-        is read by a receiver set for one (the second is idle line), and the other
-        way round: stop bits never decide whether a drive understands the master.
+        A frame sent with two stop bits is read by a receiver set for one (the
+        second is idle line), and most UARTs (the 16550 and its descendants, USB
+        adapters) check only the first stop bit of what they receive: the stop
+        bits do not decide whether a drive understands the master. The scan
+        therefore probes each key once, with 2 stop bits where any family uses 2.
         """
         return self.baudrate, self.parity, self.bytesize
 
