@@ -340,6 +340,9 @@ def scan_tcp(targets: Sequence[TcpTarget], profiles: Sequence[Profile], ids: Seq
         try:
             results, stopped = _sweep(transport, ids, probe, modbus, budget, progress, where,
                                       None if thorough else silent_ids, None, set())
+        except TransportError as exc:       # the server dropped us: report it, go on
+            results, stopped = [], ''
+            report.skipped.append(f'{where}: {exc}')
         finally:
             transport.close()
         for unit, identification, identity, note in results:
