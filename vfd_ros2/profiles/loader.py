@@ -25,6 +25,7 @@ from ..errors import ParameterError, ProfileError
 from .model import (
     Access,
     CanObject,
+    CanopenIdentity,
     CanopenSpec,
     CommissioningWrite,
     CommTimeoutSpec,
@@ -36,6 +37,10 @@ from .model import (
     FaultSpec,
     FlagRule,
     FlagRuleKind,
+    IdentifyCheck,
+    IdentifyExpect,
+    IdentifySpec,
+    ModbusIdentity,
     ModbusSpec,
     ObjectSet,
     Parameter,
@@ -199,6 +204,55 @@ def _canopen(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> Ca
     return spec
 
 
+def _identify_read(item: Any, count: Any, where: str,
+                   parameters: Mapping[str, Parameter]) -> tuple[int, int, str]:
+    """Return (address, count, code) of a read named by a code or by a plain register address."""
+    if isinstance(item, str):
+        parameter = parameters.get(item)
+        if parameter is None or parameter.address < 0:
+            raise ProfileError(f'{where}: {item!r} is not a parameter with a Modbus address')
+        return parameter.address, int(count or parameter.register_count), parameter.code
+    return int(item), int(count or 1), ''
+
+
+def _identify(item: Mapping[str, Any], parameters: Mapping[str, Parameter],
+              where: str) -> IdentifySpec:
+    for label in ('firmware', 'link_parameters'):
+        for code in item.get(label) or []:
+            if code not in parameters:
+                raise ProfileError(f'{where}: identify.{label} names {code!r}, not in the '
+                                   'parameter table')
+    modbus = None
+    if item.get('modbus'):
+        data = item['modbus']
+        probe_address, probe_count, _ = _identify_read(data['probe'], None,
+                                                        f'{where}: identify.modbus.probe',
+                                                        parameters)
+        checks = []
+        for number, check in enumerate(data['checks']):
+            address, count, code = _identify_read(
+                check['read'], check.get('count'),
+                f'{where}: identify.modbus.checks[{number}]', parameters)
+            checks.append(IdentifyCheck(
+                address=address, count=count, code=code, expect=IdentifyExpect(check['expect']),
+                values=tuple(int(v) for v in check.get('values') or ()),
+                exception=int(check.get('exception', 0)), why=str(check['why'])))
+        modbus = ModbusIdentity(probe_address, probe_count, tuple(checks),
+                                baudrates=tuple(int(b) for b in data.get('baudrates') or ()),
+                                formats=tuple(str(f) for f in data.get('formats') or ()))
+    canopen = None
+    if item.get('canopen'):
+        data = item['canopen']
+        canopen = CanopenIdentity(device_profile=data.get('device_profile'),
+                                  vendor_id=data.get('vendor_id'),
+                                  product_code=data.get('product_code'),
+                                  why=str(data.get('why', '')))
+    return IdentifySpec(firmware=tuple(str(c) for c in item.get('firmware') or ()),
+                        link_parameters=tuple(str(c) for c in item.get('link_parameters') or ()),
+                        modbus=modbus, canopen=canopen, note=str(item.get('note', '')),
+                        source=str(item.get('source', '')))
+
+
 def _build(path: Path) -> Profile:
     data = _read_yaml(path, 'profile')
     raw_parameters = list(data.get('parameters') or [])
@@ -304,6 +358,8 @@ def _build(path: Path) -> Profile:
         notes=tuple(str(n) for n in data.get('notes') or []),
         source_file=str(path),
         canopen=_canopen(data['canopen'], parameters) if data.get('canopen') else None,
+        identify=_identify(data['identify'], parameters, path.name)
+        if data.get('identify') else None,
         _by_name=by_name,
         _by_address=by_address,
         _by_folded_code={code.casefold(): code for code in parameters},

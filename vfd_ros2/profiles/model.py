@@ -19,11 +19,12 @@ from ..protocol.scaling import SpeedUnit
 from ..protocol.values import ValueType, WordOrder
 
 __all__ = [
-    'Access', 'CanObject', 'CanopenSpec', 'CommTimeoutSpec', 'CommissioningWrite', 'ControlSpec',
-    'ControlStyle', 'DirectionMode', 'EmcyFault', 'FaultEntry', 'FaultSpec', 'FlagRule',
-    'FlagRuleKind', 'ModbusSpec', 'ObjectSet', 'Parameter', 'Persistence', 'PersistenceKind',
-    'Profile', 'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction', 'ValueType',
-    'VelocitySpec', 'WordOrder',
+    'Access', 'CanObject', 'CanopenIdentity', 'CanopenSpec', 'CommTimeoutSpec',
+    'CommissioningWrite', 'ControlSpec', 'ControlStyle', 'DirectionMode', 'EmcyFault',
+    'FaultEntry', 'FaultSpec', 'FlagRule', 'FlagRuleKind', 'IdentifyCheck', 'IdentifyExpect',
+    'IdentifySpec', 'ModbusIdentity', 'ModbusSpec', 'ObjectSet', 'Parameter', 'Persistence',
+    'PersistenceKind', 'Profile', 'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction',
+    'ValueType', 'VelocitySpec', 'WordOrder',
 ]
 
 class Access(str, enum.Enum):
@@ -374,6 +375,83 @@ class CanopenSpec:
         return self.object_sets[key]
 
 
+class IdentifyExpect(str, enum.Enum):
+    """What answer to an identification read identifies the family."""
+
+    ANSWERS = 'answers'        # a normal reply of the right length
+    EQUALS = 'equals'          # a normal reply holding one of the values
+    EXCEPTION = 'exception'    # the drive's own exception code for that read
+
+
+@dataclass(frozen=True)
+class IdentifyCheck:
+    """One read (function 03) and the answer that belongs to the family."""
+
+    address: int
+    count: int
+    expect: IdentifyExpect
+    code: str = ''                       # the parameter read ('' = an undocumented address)
+    values: tuple[int, ...] = ()         # EQUALS: raw values (the first register)
+    exception: int = 0                   # EXCEPTION: the code on the wire
+    why: str = ''
+
+    @property
+    def where(self) -> str:
+        return self.code or f'0x{self.address:04X}'
+
+    def describe(self) -> str:
+        if self.expect is IdentifyExpect.EQUALS:
+            shown = ' or '.join(f'0x{v:04X}' for v in self.values)
+            return f'{self.where} = {shown}'
+        if self.expect is IdentifyExpect.EXCEPTION:
+            return f'{self.where} answers exception {self.exception}'
+        return f'{self.where} answers'
+
+
+@dataclass(frozen=True)
+class ModbusIdentity:
+    """Where a scan looks for the family on a Modbus line and how it recognises it."""
+
+    probe_address: int
+    probe_count: int
+    checks: tuple[IdentifyCheck, ...]
+    baudrates: tuple[int, ...] = ()      # documented options, most likely first
+    formats: tuple[str, ...] = ()        # e.g. ('8N1', '8E1'); data bits, parity, stop bits
+
+    @property
+    def confidence(self) -> str:
+        """What a full match is worth: an identification value is proof, a shape is not."""
+        if any(check.expect is IdentifyExpect.EQUALS for check in self.checks):
+            return 'high'
+        return 'medium'
+
+
+@dataclass(frozen=True)
+class CanopenIdentity:
+    """What 0x1000 / 0x1018 of the family's drives hold (None: not documented)."""
+
+    device_profile: int | None = None    # 0x1000 bits 0-15 (402 = drive)
+    vendor_id: int | None = None         # 0x1018:01
+    product_code: int | None = None      # 0x1018:02
+    why: str = ''
+
+
+@dataclass(frozen=True)
+class IdentifySpec:
+    """How commissioning tools find, recognise and reach a drive of the family."""
+
+    # Codes whose values identify the firmware / parameter table: recorded in a
+    # parameter dump and compared before a restore.
+    firmware: tuple[str, ...] = ()
+    # Codes that change how the drive is reached (address, baud rate, framing, IP):
+    # a restore writes them last, and only when asked.
+    link_parameters: tuple[str, ...] = ()
+    modbus: ModbusIdentity | None = None
+    canopen: CanopenIdentity | None = None
+    note: str = ''
+    source: str = ''
+
+
 @dataclass(frozen=True)
 class Profile:
     name: str
@@ -401,6 +479,8 @@ class Profile:
     # timeout it manages, CiA 402 objects): code -> what to use instead. The
     # parameter services refuse them, so nothing moves the motor around the loop.
     control_owned: Mapping[str, str] = field(default_factory=dict)
+    # How vfd_scan / vfd_params find and recognise the family (None: not described).
+    identify: IdentifySpec | None = None
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
     _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
     _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)

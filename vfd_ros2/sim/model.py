@@ -84,6 +84,9 @@ class SimulatedDrive:
         # Registers this unit refuses (answered "illegal address"), as a stricter or
         # older firmware of the family would: e.g. a monitor value it does not have.
         self.refused: set[int] = set()
+        # Registers this unit will not store (answered like a read-only register), as a
+        # drive with a parameter lock or a stricter firmware would: reads still answer.
+        self.write_refused: set[int] = set()
         self.requests = 0
         self.last_command_value: int | None = None
         self._last_request: float | None = None
@@ -147,6 +150,15 @@ class SimulatedDrive:
                 self.refused.update(range(parameter.address,
                                           parameter.address + parameter.register_count))
 
+    def refuse_writes(self, codes: list[str]) -> None:
+        """Make writes to these parameters answer the drive's read-only exception from now on."""
+        with self.lock:
+            self.write_refused = set()
+            for code in codes:
+                parameter = self.profile.parameter(code)
+                self.write_refused.update(range(parameter.address,
+                                                parameter.address + parameter.register_count))
+
     def read(self, address: int, count: int) -> list[int]:
         with self.lock:
             if count < 1 or count > self.profile.modbus.max_read_registers:
@@ -182,6 +194,8 @@ class SimulatedDrive:
             address = self._resolve_write_address(address)
             if self.refused.intersection(range(address, address + len(values))):
                 raise self.exception('illegal_address')
+            if self.write_refused.intersection(range(address, address + len(values))):
+                raise self.exception('read_only')
             offset = 0
             pending: list[tuple[Parameter, int]] = []
             while offset < len(values):

@@ -32,6 +32,19 @@ each reply for that long after its last byte (an FTDI adapter's latency timer,
 16 ms by default on Linux, when the port is not in low-latency mode; the worst
 case of a timer that runs independently), and ``adapter_echo`` sends the
 master's own request bytes back as an adapter that hears its transmission does.
+
+Drives at several baud rates on one line (``drive_baudrates``, unit id -> baud
+rate): a pseudo-terminal moves bytes, not bits, so a frame sent at the wrong
+baud rate cannot turn into garbage by itself. What it does keep is the
+settings the master opened it with: Linux shares one termios between both
+ends of a pty, so the line reads the master's baud rate (``tcgetattr`` on its
+own end) when a frame's first bytes arrive, and a drive set to another baud
+rate does not hear the frame (it would see garbage and drop it:
+``stats.wrong_baud``). Parity is not emulated: the pty driver clears PARENB
+and forces CS8 whatever the master asked for. Stop bits do not matter either,
+as on a real line (a UART samples only the first stop bit). Without
+``drive_baudrates`` every drive hears every baud rate (the default). With
+wire-time emulation the character time follows the master's baud rate.
 """
 
 from __future__ import annotations
@@ -40,11 +53,13 @@ import collections
 import os
 import random
 import select
+import termios
 import threading
 import time
 import tty
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping
 
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
@@ -67,6 +82,7 @@ class LineStats:
     dropped_while_late: int = 0  # requests not heard while answering late (deaf)
     ignored: int = 0         # requests for absent or silent drives
     gap_violations: int = 0  # requests that began < t3.5 after the previous reply (emulated)
+    wrong_baud: int = 0      # requests a drive did not hear: sent at another baud rate
 
 
 @dataclass
@@ -102,6 +118,12 @@ class Exchange:
 #: hand reply bytes over at most this often (a UART's receive FIFO also batches)
 _CHUNK = 0.0003
 
+#: termios speed constant -> bit/s (the rates this platform names)
+_BAUD_OF = {getattr(termios, f'B{rate}'): rate for rate in (
+    50, 75, 110, 134, 150, 200, 300, 600, 1200, 1800, 2400, 4800, 9600, 19200, 38400, 57600,
+    115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1152000, 1500000, 2000000)
+    if hasattr(termios, f'B{rate}')}
+
 __all__ = ['Exchange', 'LineFaults', 'LineStats', 'SimulatedRtuLine', 'character_time']
 
 
@@ -113,12 +135,19 @@ class SimulatedRtuLine:
                  emulate_wire_time: bool = False, corrupt_rate: float = 0.0,
                  tick_period: float = 0.005, seed: int | None = None,
                  response_delay: float = 0.0, faults: LineFaults | None = None,
-                 adapter_latency: float = 0.0, adapter_echo: bool = False) -> None:
+                 adapter_latency: float = 0.0, adapter_echo: bool = False,
+                 drive_baudrates: Mapping[int, int] | None = None) -> None:
         self.drives = {drive.unit_id: drive for drive in drives}
         self.link_path = Path(link_path)
         self.baudrate = baudrate
+        self.parity = parity
+        self.stopbits = stopbits
         self.char_time = character_time(baudrate, parity, stopbits)
         self.gap = frame_gap(baudrate, self.char_time)
+        #: unit id -> the baud rate that drive listens at (None: every drive hears every rate)
+        self.drive_baudrates = dict(drive_baudrates) if drive_baudrates is not None else None
+        #: the baud rate the master has the port open at (read from the pty), 0 = unknown
+        self.master_baudrate = 0
         self.response_delay = response_delay
         self.emulate_wire_time = emulate_wire_time
         #: emulated exchanges, newest last (only with emulate_wire_time)
@@ -208,6 +237,8 @@ class SimulatedRtuLine:
                 if chunk:
                     if self.adapter_echo:
                         self._echo(chunk)
+                    if not self._buffer and self.drive_baudrates is not None:
+                        self._follow_master_baudrate()
                     if self.emulate_wire_time:
                         start = max(now, self._wire_free)
                         if not self._buffer:
@@ -350,8 +381,31 @@ class SimulatedRtuLine:
         while (remaining := moment - time.monotonic()) > 0:
             time.sleep(remaining)
 
+    def _follow_master_baudrate(self) -> None:
+        """Read the baud rate the master opened the port with (Linux: one termios per pty)."""
+        try:
+            attributes = termios.tcgetattr(self._master_fd)
+        except (termios.error, OSError):
+            return
+        baudrate = _BAUD_OF.get(attributes[5], 0)
+        if baudrate and baudrate != self.master_baudrate:
+            stopbits = 2 if attributes[2] & termios.CSTOPB else 1
+            self.char_time = character_time(baudrate, 'N', stopbits)
+            self.gap = frame_gap(baudrate, self.char_time)
+        self.master_baudrate = baudrate
+
+    def _listeners(self, request: ModbusPDU) -> dict[int, SimulatedDrive]:
+        """Return the drives that hear ``request``: all, or those at the master's baud rate."""
+        if self.drive_baudrates is None:
+            return self.drives
+        heard = {unit: drive for unit, drive in self.drives.items()
+                 if self.drive_baudrates.get(unit, self.baudrate) == self.master_baudrate}
+        if request.dev_id in self.drives and request.dev_id not in heard:
+            self.stats.wrong_baud += 1
+        return heard
+
     def _answer(self, request: ModbusPDU) -> bytes | None:
-        reply = answer(self.drives, request)
+        reply = answer(self._listeners(request), request)
         if reply is None:
             self.stats.ignored += 1
             return None
