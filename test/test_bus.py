@@ -215,6 +215,15 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
             time.sleep(0.05)
         assert abs(first.state.measured_velocity - 1.0) < 0.05
         assert abs(second.state.measured_velocity + 0.5) < 0.05
+        # SYNC-driven (cia402_velocity, type 1): one SYNC per bus cycle after both RPDOs,
+        # not one per drive; commands held steady meanwhile, so no preempt adds one.
+        cycles0, syncs0 = first._cycle, bus.transport.syncs       # noqa: SLF001
+        applied0 = [sim.syncs_received for sim in sims]
+        time.sleep(0.4)
+        cycles = first._cycle - cycles0                            # noqa: SLF001
+        syncs = bus.transport.syncs - syncs0
+        assert cycles >= 10 and abs(syncs - cycles) <= 1, (syncs, cycles)
+        assert all(abs(sim.syncs_received - a - syncs) <= 1 for sim, a in zip(sims, applied0))
         sims[1].silent = True                   # node 2 dies
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline and second.state.online:

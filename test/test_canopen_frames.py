@@ -7,6 +7,7 @@ printed frames (test/vectors/kinco_ec_frames.yaml, sdo_frames).
 
 from __future__ import annotations
 
+import time
 import uuid
 from pathlib import Path
 
@@ -192,3 +193,73 @@ def test_rpdo_frame_little_endian_and_signed(channel):
 def test_unknown_abort_code_text():
     assert 'unknown SDO abort code 0x12345678' == abort_text(0x12345678)
     assert abort_text(0x06020000) == SDO_ABORT_CODES[0x06020000]
+
+
+def configured_cia402(channel: str, **settings) -> tuple[CanopenDrive, CanopenTransport]:
+    transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2, **settings)
+    drive = CanopenDrive(load_profile('cia402_velocity'), transport, 1,
+                         VelocityScaling(1.0, False, 3000.0, 2))
+    drive.open()
+    drive.configure(drive.host_loss_plan(0.3, 0.02), apply_commissioning=True)
+    return drive, transport
+
+
+def test_a_synchronous_rpdo_takes_effect_at_the_sync_that_ends_the_burst(channel):
+    """cia402_velocity runs on SYNC: the twin applies RPDO1 only when the host's SYNC comes."""
+    twin = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)
+    sim_bus = SimulatedCanBus([twin], channel).start()
+    sniffer = Sniffer(channel)
+    drive, transport = configured_cia402(channel)
+    try:
+        assert transport.read_object(1, 0x1400, 2, ValueType.UINT8) == 1
+        received = twin.rpdos_received
+        transport.transmit(1, 1, [0x0006, 500])
+        wait_for(lambda: twin.rpdos_received > received, 2.0, 'RPDO1 received')
+        time.sleep(0.05)
+        assert twin.target_raw == 0 and (0x80, b'') not in sniffer.frames   # not yet
+        transport.end_command_burst()
+        wait_for(lambda: twin.target_raw == 500, 2.0, 'RPDO1 applied at SYNC')
+        assert transport.syncs == 1 and twin.syncs_received == 1
+        rpdo_at = sniffer.frames.index((0x201, bytes.fromhex('0600 F4010000')))
+        assert sniffer.frames.index((0x80, b'')) > rpdo_at
+        # the twin answers the SYNC with its synchronous TPDO1 (status word first)
+        wait_for(lambda: any(cob == 0x181 for cob, _ in
+                             sniffer.frames[sniffer.frames.index((0x80, b'')):]), 2.0,
+                 'TPDO1 after the SYNC')
+    finally:
+        drive.close()
+        sniffer.close()
+        sim_bus.stop()
+
+
+def test_no_sync_where_the_drive_is_event_driven_or_another_device_produces_it(channel):
+    kinco_twin = SimulatedCanopenDrive(load_profile('kinco_ec'), 1)
+    sim_bus = SimulatedCanBus([kinco_twin], channel).start()
+    sniffer = Sniffer(channel)
+    drive = kinco_drive(channel)
+    try:
+        drive.configure(drive.host_loss_plan(0.3, 0.02), apply_commissioning=True)
+        assert drive.transport.read_object(1, 0x1400, 2, ValueType.UINT8) == 255
+        drive.transport.end_command_burst()
+        # the Kinco takes asynchronous PDOs only (manual L964): type 1 is refused
+        with pytest.raises(ProtocolException, match='0x06090030'):
+            drive.transport.write_object(1, 0x1400, 2, ValueType.UINT8, 1)
+    finally:
+        drive.close()
+        sim_bus.stop()
+    other = f'{channel}b'
+    twin = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)
+    sim_bus = SimulatedCanBus([twin], other).start()
+    sniffer_b = Sniffer(other)
+    drive, transport = configured_cia402(other, sync_producer=False)
+    try:
+        transport.transmit(1, 1, [0x0006, 0])
+        transport.end_command_burst()
+        time.sleep(0.05)
+        assert transport.syncs == 0
+    finally:
+        drive.close()
+        sim_bus.stop()
+    assert not any(cob == 0x80 for cob, _ in sniffer.frames + sniffer_b.frames)
+    sniffer.close()
+    sniffer_b.close()

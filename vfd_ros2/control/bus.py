@@ -159,14 +159,18 @@ class Bus:
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
             controller.command_phase(connect_allowed=controller is chosen)
+        for transport in self.transports:       # (CANopen: one SYNC applies them all)
+            transport.end_command_burst()
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
     def preempt(self) -> None:
         """Write every drive's new command now, before the next status read."""
         self._broadcast_stop_if_all_tripped()
-        for controller in self.controllers.values():
-            controller.preempt()
+        wrote = [controller.preempt() for controller in self.controllers.values()]
+        if any(wrote):
+            for transport in self.transports:
+                transport.end_command_burst()
 
     def _broadcast_stop_if_all_tripped(self) -> None:
         """When every running drive's watchdog trips at once, stop them in one frame.

@@ -225,7 +225,8 @@ class DriveController:
         """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
         if self._loop is None:
             self._loop = CycleLoop(f'drive {self.drive.hardware_id}', self.config.cycle_period,
-                                   self.step, self.finish, self._clock, preempt=self.preempt,
+                                   self.step, self.finish, self._clock,
+                                   preempt=self.preempt_alone,
                                    preempt_at=self.preempt_at,
                                    priority=self.config.realtime_priority)
             self.request_preempt = self._loop.request_preempt
@@ -247,6 +248,7 @@ class DriveController:
 
     def step(self) -> None:
         self.command_phase()
+        self.drive.transport.end_command_burst()
         self.poll_phase()
 
     def command_phase(self, connect_allowed: bool = True) -> None:
@@ -295,26 +297,33 @@ class DriveController:
             return None         # handled once already (a failed write is the link's matter)
         return deadline + 1e-4
 
-    def preempt(self) -> None:
+    def preempt(self) -> bool:
         """Write a new velocity command now, between polls (commands preempt polls).
 
         A watchdog that expired while the drive was told to run counts as a new
-        command: the stop goes out at once, not a bus cycle later.
+        command: the stop goes out at once, not a bus cycle later. Return whether
+        a command was written (the caller ends the command burst).
         """
         if not self.link.online:
-            return
+            return False
         with self._lock:
             tripped = self._run_written and self._watchdog.expired
             if tripped:
                 self._preempted_deadline = self._watchdog.deadline
         if not (self._command_pending or tripped):
-            return
+            return False
         try:
             self._write_command()
         except TransportError as exc:
             self._link_failed(exc)
         except ProtocolException as exc:
             self.link.error = str(exc)
+        return True
+
+    def preempt_alone(self) -> None:
+        """``preempt`` for a drive that runs in its own loop: then end the burst."""
+        if self.preempt():
+            self.drive.transport.end_command_burst()
 
     def poll_phase(self) -> None:
         """Read the status, latch faults, advance a service action, publish the state."""
@@ -339,6 +348,7 @@ class DriveController:
                 # Whatever the driver believes the drive is doing: write the stop.
                 self.drive.forget_state()
                 self.drive.apply(0.0, run=False, idle_action='stop')
+                self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
             except VfdError as exc:
                 log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
         self.drive.close()
@@ -380,7 +390,7 @@ class DriveController:
         if self.preempt_hook is not None:
             self.preempt_hook()
         else:
-            self.preempt()
+            self.preempt_alone()
 
     def _connect(self) -> None:
         drive = self.drive

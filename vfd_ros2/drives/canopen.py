@@ -416,6 +416,9 @@ class CanopenDrive:
     def _send_controlword(self, controlword: int) -> None:
         if self._configured:
             self._send_rpdo(controlword, 0)
+            # A command outside the cycle (a service action) takes effect now: a SYNC-driven
+            # drive applies only the last RPDO before each SYNC, and a fault reset is an edge.
+            self.transport.end_command_burst()
         else:
             self._write(self.objects.controlword, controlword)
             self._last_controlword = controlword

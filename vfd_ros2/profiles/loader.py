@@ -201,6 +201,10 @@ def _canopen(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> Ca
     )
     if spec.object_set not in spec.object_sets:
         raise ProfileError(f'canopen.object_set {spec.object_set!r} is not in object_sets')
+    if not (spec.transmission_type <= 240 or spec.transmission_type in (254, 255)):
+        # 241-251 are reserved; 252/253 answer remote frames only, which the driver never sends
+        raise ProfileError(f'canopen.transmission_type {spec.transmission_type}: use 0..240 '
+                           '(synchronous) or 254/255 (event-driven)')
     return spec
 
 

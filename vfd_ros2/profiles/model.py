@@ -360,7 +360,7 @@ class CanopenSpec:
     heartbeat_timeout_factor: float = 3.0   # host consumer timeout = factor x producer time
     rpdos: int = 4
     tpdos: int = 4
-    transmission_type: int = 255
+    transmission_type: int = 255            # 1..240: on SYNC (the host sends one per cycle)
     tpdo_event_timer_ms: int = 0            # 0x18xx:05 (0 = send on change only)
     rpdo_deadline: bool = False             # 0x14xx:05 supervises RPDO reception
     heartbeat_consumer: bool = False        # 0x1016: the drive documents a heartbeat consumer

@@ -46,6 +46,8 @@ from ..profiles import (
 from ..protocol.cia402 import STATUSWORD_OF, ControlBit, State, transition
 from ..transports.canopen import (
     PDO_DISABLED,
+    SYNC_COB_ID,
+    SYNCHRONOUS_MAX,
     ObjectEntry,
     add_objects,
     add_pdo_objects,
@@ -113,6 +115,9 @@ class SimulatedCanopenDrive:
         self._last_rpdo: float | None = None
         self._last_heartbeat = 0.0
         self._tpdo_sent: dict[int, tuple[bytes, float]] = {}
+        self._rpdo_pending: dict[int, bytes] = {}   # synchronous RPDOs, applied at SYNC
+        self._syncs = 0
+        self.syncs_received = 0
         self._last_tick = clock()
 
     # --- object dictionary ----------------------------------------------------------------
@@ -252,8 +257,11 @@ class SimulatedCanopenDrive:
                 raise SdoAbortedError(0x06090030)
         if 0x1800 <= index < 0x1800 + self.spec.tpdos or 0x1400 <= index < 0x1400 + \
                 self.spec.rpdos:
-            if subindex == 2 and raw not in (254, 255):
-                raise SdoAbortedError(0x06090030)      # asynchronous PDOs only
+            if subindex == 2 and raw not in (254, 255) and not (
+                    raw <= SYNCHRONOUS_MAX and self.spec.transmission_type <= SYNCHRONOUS_MAX):
+                # What the profile's drive takes: event-driven, or synchronous where the
+                # profile says the drive runs on SYNC (the Kinco: 254/255 only, L964).
+                raise SdoAbortedError(0x06090030)
         if (0x1A00 <= index < 0x1A00 + self.spec.tpdos or
                 0x1600 <= index < 0x1600 + self.spec.rpdos) and subindex and raw:
             try:
@@ -456,23 +464,32 @@ class SimulatedCanopenDrive:
         if self.node.nmt.state != 'OPERATIONAL':
             return
         for number in range(self.spec.tpdos):
-            cob = self._stored(0x1800 + number, 1)
-            count = self._stored(0x1A00 + number, 0)
-            if cob & PDO_DISABLED or not count:
+            if self._stored(0x1800 + number, 2) <= SYNCHRONOUS_MAX:
+                continue                        # sent at SYNC (_on_sync)
+            payload = self._tpdo_payload(number)
+            if payload is None:
                 continue
-            value, shift = 0, 0
-            for sub in range(1, count + 1):
-                entry = self._stored(0x1A00 + number, sub)
-                bits = entry & 0xFF
-                raw = self._raw(entry >> 16, (entry >> 8) & 0xFF)
-                value |= (raw & ((1 << bits) - 1)) << shift
-                shift += bits
-            data = value.to_bytes((shift + 7) // 8, 'little')
+            cob, data = payload
             timer = self._stored(0x1800 + number, 5) / 1000.0
             last = self._tpdo_sent.get(number)
             if last is None or last[0] != data or (timer > 0 and now - last[1] >= timer):
                 self._tpdo_sent[number] = (data, now)
                 self.network.send_message(cob & 0x7FF, data)
+
+    def _tpdo_payload(self, number: int) -> tuple[int, bytes] | None:
+        """Return (COB-ID, data) of TPDO ``number`` (0-based) as mapped, or None if off."""
+        cob = self._stored(0x1800 + number, 1)
+        count = self._stored(0x1A00 + number, 0)
+        if cob & PDO_DISABLED or not count:
+            return None
+        value, shift = 0, 0
+        for sub in range(1, count + 1):
+            entry = self._stored(0x1A00 + number, sub)
+            bits = entry & 0xFF
+            raw = self._raw(entry >> 16, (entry >> 8) & 0xFF)
+            value |= (raw & ((1 << bits) - 1)) << shift
+            shift += bits
+        return cob, value.to_bytes((shift + 7) // 8, 'little')
 
     # --- frames from the bus ------------------------------------------------------------------
 
@@ -486,6 +503,7 @@ class SimulatedCanopenDrive:
         network.subscribe(0, self._gate(self.node.nmt.on_command))
         for number in range(self.spec.rpdos):
             network.subscribe(0x200 + 0x100 * number + self.node_id, self._on_rpdo)
+        network.subscribe(SYNC_COB_ID, self._on_sync)
         self.node.nmt.state = 'PRE-OPERATIONAL'
         network.send_message(0x700 + self.node_id, bytes((0,)))      # boot-up
 
@@ -506,19 +524,54 @@ class SimulatedCanopenDrive:
             count = self._stored(0x1600 + number, 0)
             if cob & PDO_DISABLED or not count:
                 return
-            value, shift = int.from_bytes(bytes(data), 'little'), 0
-            for sub in range(1, count + 1):
-                entry = self._stored(0x1600 + number, sub)
-                bits = entry & 0xFF
-                raw = (value >> shift) & ((1 << bits) - 1)
-                if raw >= 1 << (bits - 1) and self._signed(entry >> 16, (entry >> 8) & 0xFF):
-                    raw -= 1 << bits
-                shift += bits
-                self.node.data_store.setdefault(entry >> 16, {})[(entry >> 8) & 0xFF] = \
-                    self.node._find_object(entry >> 16, (entry >> 8) & 0xFF).encode_raw(raw)  # noqa: SLF001
-                self._apply_write(entry >> 16, (entry >> 8) & 0xFF, raw)
             self.rpdos_received += 1
-            self._last_rpdo = self._clock()
+            self._last_rpdo = self._clock()       # deadline monitoring counts reception
+            if self._stored(0x1400 + number, 2) <= SYNCHRONOUS_MAX:
+                self._rpdo_pending[number] = bytes(data)      # takes effect at the next SYNC
+                return
+            self._apply_rpdo(number, bytes(data))
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """SYNC: apply the synchronous RPDOs received since the last one, send sync TPDOs."""
+        if self.silent:
+            return
+        with self.lock:
+            if self.node.nmt.state != 'OPERATIONAL':
+                return
+            self.syncs_received += 1
+            self._syncs += 1
+            pending, self._rpdo_pending = self._rpdo_pending, {}
+            for number, payload in pending.items():
+                self._apply_rpdo(number, payload)
+            for number in range(self.spec.tpdos):
+                kind = self._stored(0x1800 + number, 2)
+                if kind > SYNCHRONOUS_MAX:
+                    continue
+                tpdo = self._tpdo_payload(number)
+                if tpdo is None:
+                    continue
+                cob, payload = tpdo
+                last = self._tpdo_sent.get(number)
+                # type 0: acyclic, sent at SYNC only when changed; n: every n-th SYNC
+                due = (last is None or last[0] != payload) if kind == 0 else \
+                    self._syncs % kind == 0
+                if due:
+                    self._tpdo_sent[number] = (payload, self._clock())
+                    self.network.send_message(cob & 0x7FF, payload)
+
+    def _apply_rpdo(self, number: int, data: bytes) -> None:
+        count = self._stored(0x1600 + number, 0)
+        value, shift = int.from_bytes(data, 'little'), 0
+        for sub in range(1, count + 1):
+            entry = self._stored(0x1600 + number, sub)
+            index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+            raw = (value >> shift) & ((1 << bits) - 1)
+            if raw >= 1 << (bits - 1) and self._signed(index, subindex):
+                raw -= 1 << bits
+            shift += bits
+            self.node.data_store.setdefault(index, {})[subindex] = \
+                self.node._find_object(index, subindex).encode_raw(raw)  # noqa: SLF001
+            self._apply_write(index, subindex, raw)
 
     def _signed(self, index: int, subindex: int) -> bool:
         obj = self.node._find_object(index, subindex)   # noqa: SLF001

@@ -109,6 +109,13 @@ class Transport(abc.ABC):
         """Time one exchange with a silent drive occupies the link (its timeout)."""
         return float(getattr(self, 'timeout', 0.1))
 
+    def end_command_burst(self) -> None:
+        """Every drive on this link has written this cycle's command (or a preempt's).
+
+        A link whose drives apply commands on a common trigger sends it here
+        (CANopen: one SYNC after the RPDOs); the others need nothing. Never raises.
+        """
+
     @abc.abstractmethod
     def open(self) -> None:
         """Open the link (idempotent). Raises TransportError if it cannot."""

@@ -51,6 +51,10 @@ from .base import Transport, TransportParameter
 log = logging.getLogger(__name__)
 
 PDO_DISABLED = 0x80000000
+#: the highest synchronous PDO transmission type (CiA 301: 0 acyclic, 1..240 every n-th SYNC)
+SYNCHRONOUS_MAX = 240
+#: COB-ID of the SYNC object (CiA 301 default 0x1005 = 0x80)
+SYNC_COB_ID = 0x80
 #: NMT state byte of Operational in a heartbeat (CiA 301); the host reports it too
 NMT_OPERATIONAL = 0x05
 #: host heartbeat period bounds when derived from the control rate (s)
@@ -297,6 +301,7 @@ class _Link:
     supervise_from: float = 0.0
     subscriptions: list[tuple[int, Callable[..., None]]] = field(default_factory=list)
     bad_tpdo: dict[int, float] = field(default_factory=dict)
+    synchronous: bool = False      # its RPDOs take effect at the next SYNC
 
 
 class CanopenTransport(Transport):
@@ -321,13 +326,16 @@ class CanopenTransport(Transport):
                            "and the drives' heartbeat consumer (0x1016) use it"),
         TransportParameter('host_heartbeat_ms', 0, 'host heartbeat period; 0 = the control '
                            'period (10..100 ms)'),
+        TransportParameter('sync_producer', True, "send SYNC (0x080) after each cycle's RPDOs "
+                           'where the drives use synchronous PDOs; false when another device '
+                           '(or process) on the bus produces SYNC'),
     )
     shared_by_drives = True    # one transport per channel; bus_node opens the channel once
 
     def __init__(self, interface: str = 'virtual', channel: str = 'vcan0', bitrate: int = 0,
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
                  heartbeat_timeout: float = 0.0, host_node_id: int = 127,
-                 host_heartbeat_ms: int = 0,
+                 host_heartbeat_ms: int = 0, sync_producer: bool = True,
                  bus_factory: Callable[..., Any] | None = None) -> None:
         super().__init__()
         if not timeout > 0:
@@ -346,6 +354,8 @@ class CanopenTransport(Transport):
         self.heartbeat_timeout = float(heartbeat_timeout)
         self.host_node_id = int(host_node_id)
         self.host_heartbeat_ms = int(host_heartbeat_ms)
+        self.sync_producer = bool(sync_producer)
+        self.syncs = 0                 # SYNC frames sent
         self._bus_factory = bus_factory
         self.channel: CanChannel | None = None
         self._links: dict[int, _Link] = {}
@@ -361,7 +371,8 @@ class CanopenTransport(Transport):
                    heartbeat_ms=int(settings.get('heartbeat_ms', 0) or 0),
                    heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0),
                    host_node_id=int(settings.get('host_node_id', 127) or 127),
-                   host_heartbeat_ms=int(settings.get('host_heartbeat_ms', 0) or 0))
+                   host_heartbeat_ms=int(settings.get('host_heartbeat_ms', 0) or 0),
+                   sync_producer=bool(settings.get('sync_producer', True)))
 
     @property
     def description(self) -> str:
@@ -530,6 +541,19 @@ class CanopenTransport(Transport):
             self.count(unit, 'bad_frames')
             raise TransportError(f'cannot send {what} on {self.description}: {exc}') from exc
 
+    def end_command_burst(self) -> None:
+        """Send one SYNC after the cycle's RPDOs when a node applies them on SYNC."""
+        channel = self.channel
+        if not self.sync_producer or channel is None or not any(
+                link.synchronous and link.node is not None for link in self._links.values()):
+            return
+        try:
+            channel.network.sync.transmit()
+            self.syncs += 1
+        except (can.CanError, OSError, RuntimeError) as exc:
+            # The RPDOs of the next cycle meet the same bus and report it per drive.
+            log.debug('SYNC on %s: %s', self.description, exc)
+
     # --- NMT, PDO, EMCY ---------------------------------------------------------------
 
     def nmt(self, unit: int, state: str) -> None:
@@ -555,9 +579,11 @@ class CanopenTransport(Transport):
             pdo.cob_id = self._sdo(unit, f'read {pdo.com_record.od.name}',
                                    lambda: pdo.com_record[1].raw) & 0x1FFFFFFF
         self._sdo(unit, f'{kind.upper()}{number} mapping', pdo.save)
+        link = self._link(unit)
         if pdo.enabled and kind == 'tpdo':      # save() subscribed it for reception
-            link = self._link(unit)
             link.subscriptions.append((pdo.cob_id, pdo.on_message))
+        if kind == 'rpdo' and number == 1:
+            link.synchronous = bool(objects) and transmission_type <= SYNCHRONOUS_MAX
 
     def transmit(self, unit: int, number: int, raws: list[int]) -> bytes:
         """Send RPDO ``number`` with the mapped objects' raw values; return its payload."""
