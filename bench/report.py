@@ -108,12 +108,17 @@ def render_table(results: dict[str, Any]) -> str:
         if 'skipped' in canopen:
             parts.append(f"**4. CANopen**: skipped — {canopen['skipped']}")
         else:
-            rows = [[str(r.get('drives')), _fmt(r.get('rate_hz'), 0),
-                     _fmt(r.get('cycles_per_s'), 1), str(r.get('missed_cycles')),
+            rows = [[str(r.get('design', '')).split(' (')[0], str(r.get('realtime_priority', 0)),
+                     str(r.get('drives')), _fmt(r.get('rate_hz'), 0),
+                     _fmt(r.get('seconds'), 0), _fmt(r.get('cycles_per_s'), 1),
+                     str(r.get('missed_cycles', r.get('error', ''))),
+                     str(r.get('node1_late_rpdo_slots', '')), str(r.get('sync_frames', '')),
+                     _fmt(r.get('bus_load_percent_at_1mbit'), 0),
                      _fmt(r.get('latency_median_ms'), 2), _fmt(r.get('latency_p99_ms'), 2),
                      _fmt(r.get('latency_max_ms'), 2)] for r in canopen.get('rows', [])]
             parts.append('**4. CANopen** (python-can virtual bus)\n\n' + _table(
-                ['drives', 'target Hz', 'cycles/s', 'missed', 'median ms', 'p99 ms', 'max ms'],
+                ['design', 'rt prio', 'drives', 'target Hz', 's', 'cycles/s', 'missed',
+                 'late slots', 'SYNCs', 'load % 1M', 'median ms', 'p99 ms', 'max ms'],
                 rows) + ('\n\n' + canopen['note'] if canopen.get('note') else ''))
     rows = []
     for r in results.get('cpu', []):

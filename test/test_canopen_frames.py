@@ -263,3 +263,33 @@ def test_no_sync_where_the_drive_is_event_driven_or_another_device_produces_it(c
     assert not any(cob == 0x80 for cob, _ in sniffer.frames + sniffer_b.frames)
     sniffer.close()
     sniffer_b.close()
+
+
+def test_two_transports_of_one_process_send_one_sync_per_burst(channel):
+    """drive_nodes of one process on one channel: one SYNC after both RPDOs, not one each."""
+    profile = load_profile('cia402_velocity')
+    twins = [SimulatedCanopenDrive(profile, n) for n in (1, 2)]
+    sim_bus = SimulatedCanBus(twins, channel).start()
+    drives = []
+    try:
+        for n in (1, 2):
+            transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2)
+            drive = CanopenDrive(profile, transport, n, VelocityScaling(1.0, False, 3000.0, 2))
+            drive.open()
+            drive.configure(drive.host_loss_plan(0.3, 0.02), apply_commissioning=True)
+            drives.append(drive)
+        first, second = (d.transport for d in drives)
+        first.transmit(1, 1, [0x0006, 10])
+        second.transmit(2, 1, [0x0006, 20])
+        first.end_command_burst()
+        second.end_command_burst()            # the SYNC above came after its RPDO too
+        assert (first.syncs, second.syncs) == (1, 0)
+        wait_for(lambda: [t.target_raw for t in twins] == [10, 20], 2.0, 'both applied')
+        second.transmit(2, 1, [0x0006, 30])   # a later RPDO needs a SYNC of its own
+        second.end_command_burst()
+        assert second.syncs == 1
+        wait_for(lambda: twins[1].target_raw == 30, 2.0, 'applied at the second SYNC')
+    finally:
+        for drive in drives:
+            drive.close()
+        sim_bus.stop()

@@ -204,6 +204,28 @@ class CanChannel:
         self.host_node_id: int | None = None
         self.heartbeat_period = 0.0
         self._heartbeat: Any = None
+        self._sequence = 0          # RPDOs and SYNCs sent by this process, in order
+        self._last_sync = -1
+
+    def rpdo_sent(self) -> int:
+        """Count an RPDO sent on this channel; return its place in the order."""
+        with self.lock:
+            self._sequence += 1
+            return self._sequence
+
+    def sync_after(self, rpdo: int) -> bool:
+        """Send a SYNC unless one went out after RPDO ``rpdo`` already; return if sent.
+
+        Several transports of this process on one channel (drive_nodes) then send
+        one SYNC per burst between them, not one each.
+        """
+        with self.lock:
+            if self._last_sync > rpdo:
+                return False
+            self.network.sync.transmit()
+            self._sequence += 1
+            self._last_sync = self._sequence
+            return True
 
     @property
     def description(self) -> str:
@@ -356,6 +378,7 @@ class CanopenTransport(Transport):
         self.host_heartbeat_ms = int(host_heartbeat_ms)
         self.sync_producer = bool(sync_producer)
         self.syncs = 0                 # SYNC frames sent
+        self._last_rpdo = 0            # the channel's order number of this transport's last RPDO
         self._bus_factory = bus_factory
         self.channel: CanChannel | None = None
         self._links: dict[int, _Link] = {}
@@ -548,8 +571,8 @@ class CanopenTransport(Transport):
                 link.synchronous and link.node is not None for link in self._links.values()):
             return
         try:
-            channel.network.sync.transmit()
-            self.syncs += 1
+            if channel.sync_after(self._last_rpdo):
+                self.syncs += 1
         except (can.CanError, OSError, RuntimeError) as exc:
             # The RPDOs of the next cycle meet the same bus and report it per drive.
             log.debug('SYNC on %s: %s', self.description, exc)
@@ -595,6 +618,8 @@ class CanopenTransport(Transport):
         except ValueError as exc:
             raise ParameterError(f'RPDO{number} of node {unit}: {exc}') from exc
         self._send(unit, f'RPDO{number} to node {unit}', pdo.transmit)
+        if self.channel is not None:
+            self._last_rpdo = self.channel.rpdo_sent()
         return bytes(pdo.data)
 
     def received(self, unit: int, number: int) -> list[int] | None:
