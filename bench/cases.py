@@ -247,7 +247,25 @@ def bus_efficiency(profile_name: str, units: int, framing: Framing, window: floa
         finally:
             streamer.stop()
             bus.close()
-    # Whole cycles only: from one setpoint write of drive 1 to a later one.
+    static = 1.0 / (units * static_cycle_time(profile, framing))
+    return {
+        'profile': profile_name, 'drives': units, 'baudrate': framing.baudrate,
+        'framing': framing.name, 'stack': stack,
+        **wire_ratio(records, setpoint, framing),
+        'static_theoretical_cycles_per_s': round(static, 3),
+        'target': 0.95 if framing.baudrate <= 19200 else 0.90 if framing.baudrate == 115200
+        else None,
+        'gap_violations': stats['gap_violations'], 'line_errors': stats['crc_errors'],
+        'adapter_latency_ms': round(1000 * adapter_latency, 1),
+    }
+
+
+def wire_ratio(records: list[Any], setpoint: int, framing: Framing) -> dict[str, Any]:
+    """Return the fraction of the wire's limit whole bus cycles reached.
+
+    Cycles run from one setpoint write of drive 1 to a later one in the
+    simulator's records; the wire time is what their exchanges need.
+    """
     marks = [i for i, (_, _, request, _) in enumerate(records)
              if request[0] == 1 and request[1] in (6, 16)
              and int.from_bytes(request[2:4], 'big') == setpoint]
@@ -258,21 +276,11 @@ def bus_efficiency(profile_name: str, units: int, framing: Framing, window: floa
     span = records[last][0] - records[first][0]
     wire = sum(framing.exchange_time(request, reply)
                for _, _, request, reply in records[first:last])
-    achieved = cycles / span
-    theoretical = cycles / wire
-    static = 1.0 / (units * static_cycle_time(profile, framing))
-    return {
-        'profile': profile_name, 'drives': units, 'baudrate': framing.baudrate,
-        'framing': framing.name, 'stack': stack, 'cycles': cycles, 'seconds': round(span, 3),
-        'transactions_per_cycle': round((last - first) / cycles, 2),
-        'cycles_per_s': round(achieved, 3), 'theoretical_cycles_per_s': round(theoretical, 3),
-        'static_theoretical_cycles_per_s': round(static, 3),
-        'ratio': round(achieved / theoretical, 4),
-        'target': 0.95 if framing.baudrate <= 19200 else 0.90 if framing.baudrate == 115200
-        else None,
-        'gap_violations': stats['gap_violations'], 'line_errors': stats['crc_errors'],
-        'adapter_latency_ms': round(1000 * adapter_latency, 1),
-    }
+    return {'cycles': cycles, 'seconds': round(span, 3),
+            'transactions_per_cycle': round((last - first) / cycles, 2),
+            'cycles_per_s': round(cycles / span, 3),
+            'theoretical_cycles_per_s': round(cycles / wire, 3),
+            'ratio': round(wire / span, 4)}
 
 
 # --- watchdog on a bus -------------------------------------------------------------------
@@ -535,106 +543,183 @@ def _thread_cpu(pid: int) -> dict[str, float]:
     return result
 
 
-def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
-              profile_with_pyspy: bool = False) -> dict[str, Any]:
-    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS."""
-    port = _port_path('cpu')
-    tag = f'c{uuid.uuid4().hex[:6]}'
-    drives = {f'd{u}': {'namespace': f'/{tag}/d{u}', 'drive.profile': profile_name,
-                        'transport.unit_id': u, 'gear_ratio': 10.0, 'auto_enable': True,
-                        'status_rate': 20.0, 'drive_comm_timeout': DRIVE_COMM_TIMEOUT}
-              for u in range(1, units + 1)}
-    # No wire time and no t3.5 wait: this case measures the driver's CPU at the control
-    # rate (four AM drives cannot reach 50 Hz on one real 115200-baud line: section 1).
-    config = {'bus': {'name': tag, 'transport.type': 'modbus_rtu', 'transport.port': port,
-                      'transport.timeout': 0.1, 'transport.frame_gap': 0.0,
-                      'control_rate': control_rate},
-              'drives': drives}
-    result: dict[str, Any] = {'profile': profile_name, 'drives': units,
-                              'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
-    entry = 'from vfd_ros2.ros.bus_node import main'
-    with tempfile.TemporaryDirectory() as tmp, \
-            SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
-        wait_port(port)
-        log = open(Path(tmp) / 'bus_node.log', 'w+b')    # noqa: SIM115 - read on failure
-        path = Path(tmp) / 'bus.yaml'
+class BusNodeProcess:
+    """bus_node in its own process (as a robot runs it), fed and watched over ROS.
+
+    A tester node in this process publishes every drive's velocity command at
+    ``command_rate`` (a planner) and keeps the last ``~/status`` of each drive.
+    """
+
+    def __init__(self, config: dict[str, Any], units: int, tag: str,
+                 command_rate: float = 50.0) -> None:
+        self._tmp = tempfile.TemporaryDirectory()
+        self._log = open(Path(self._tmp.name) / 'bus_node.log', 'w+b')  # noqa: SIM115
+        path = Path(self._tmp.name) / 'bus.yaml'
         path.write_text(yaml.safe_dump(config))
         env = dict(os.environ)
         env['PYTHONPATH'] = os.pathsep.join(
             p for p in (env.get('PYTHONPATH', ''), str(Path(__file__).resolve().parent.parent))
             if p)
-        child = subprocess.Popen(
-            [sys.executable, '-c', f'import sys; {entry}; sys.exit(main())',
-             '--ros-args', '-p', f'config_file:={path}',
-             '--log-level', 'warn'], stdout=subprocess.DEVNULL, stderr=log, env=env, cwd=tmp)
-        context = Context()
-        rclpy.init(context=context)
-        node = Node('bench_cpu', namespace=f'/{tag}', context=context)
-        publishers = [node.create_publisher(Float64, f'd{u}/drive/velocity_command', 10)
+        self.launched = time.monotonic()
+        self.child = subprocess.Popen(
+            [sys.executable, '-c', 'import sys; from vfd_ros2.ros.bus_node import main; '
+             'sys.exit(main())', '--ros-args', '-p', f'config_file:={path}',
+             '--log-level', 'warn'], stdout=subprocess.DEVNULL, stderr=self._log, env=env,
+            cwd=self._tmp.name)
+        self.units = units
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node('bench_bus_node', namespace=f'/{tag}', context=self.context)
+        publishers = [self.node.create_publisher(Float64, f'd{u}/drive/velocity_command', 10)
                       for u in range(1, units + 1)]
-        last: dict[int, DriveStatus] = {}
+        self.last: dict[int, DriveStatus] = {}
         for u in range(1, units + 1):
-            node.create_subscription(DriveStatus, f'd{u}/drive/status',
-                                     lambda msg, u=u: last.__setitem__(u, msg), 10)
-        node.create_timer(1.0 / 50.0, lambda: [p.publish(Float64(data=1.0))
-                                               for p in publishers])
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+            self.node.create_subscription(DriveStatus, f'd{u}/drive/status',
+                                          lambda msg, u=u: self.last.__setitem__(u, msg), 10)
+        self.node.create_timer(1.0 / command_rate, lambda: [p.publish(Float64(data=1.0))
+                                                            for p in publishers])
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
 
-        def spin_for(seconds: float) -> None:
-            end = time.monotonic() + seconds
-            while time.monotonic() < end:
-                executor.spin_once(timeout_sec=0.02)
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_all_running(self, timeout: float) -> float:
+        """Return the seconds from launch until every drive reports online and running."""
+        deadline = time.monotonic() + timeout
+        while not (len(self.last) == self.units and all(s.online and s.running
+                                                        for s in self.last.values())):
+            if time.monotonic() > deadline or self.child.poll() is not None:
+                self._log.seek(0)
+                states = {u: (s.online, s.state) for u, s in self.last.items()}
+                raise RuntimeError(f'bus_node did not bring the drives online: {states} '
+                                   + self._log.read().decode(errors='replace')[-800:])
+            self.spin_for(0.05)
+        return time.monotonic() - self.launched
+
+    def transactions(self) -> int:
+        # Each drive's status carries its own counters (Transport.stats_for): the
+        # line's transactions are their sum.
+        return sum(s.transactions for s in self.last.values())
+
+    def close(self) -> None:
+        self.child.terminate()
         try:
-            deadline = time.monotonic() + 30.0
-            while not (len(last) == units and all(s.online and s.running
-                                                  for s in last.values())):
-                if time.monotonic() > deadline or child.poll() is not None:
-                    log.seek(0)
-                    raise RuntimeError('bus_node did not bring the drives online: '
-                                       f'{ {u: (s.online, s.state) for u, s in last.items()} } '
-                                       + log.read().decode(errors='replace')[-800:])
-                spin_for(0.1)
-            spin_for(1.0)
-            # Each drive's status carries its own counters (Transport.stats_for): the
-            # line's transactions are their sum.
-            tx0 = sum(s.transactions for s in last.values())
-            threads0 = _thread_cpu(child.pid)
-            cpu0, start = _proc_cpu_seconds(child.pid), time.monotonic()
-            spy = None
-            if profile_with_pyspy:
-                spy = _start_pyspy(child.pid, window)
-            spin_for(window)
-            cpu1, end = _proc_cpu_seconds(child.pid), time.monotonic()
-            threads1 = _thread_cpu(child.pid)
-            result['cpu_percent_by_thread'] = {
-                name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
-                for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0}
-            tx1 = sum(s.transactions for s in last.values())
-            result['comm_errors'] = sum(s.comm_errors for s in last.values())
-            result['rss_mb'] = round(_proc_rss_mb(child.pid), 1)
-            if spy is not None:
-                result['pyspy_top'] = _finish_pyspy(spy)
+            self.child.wait(10.0)
+        except subprocess.TimeoutExpired:
+            self.child.kill()
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._log.close()
+        self._tmp.cleanup()
+
+
+def _bus_document(tag: str, profile_name: str, units: int, link: dict[str, Any],
+                  control_rate: float) -> dict[str, Any]:
+    drives = {f'd{u}': {'namespace': f'/{tag}/d{u}', 'drive.profile': profile_name,
+                        'transport.unit_id': u, 'gear_ratio': 10.0, 'auto_enable': True,
+                        'status_rate': 20.0, 'drive_comm_timeout': DRIVE_COMM_TIMEOUT}
+              for u in range(1, units + 1)}
+    return {'bus': {'name': tag, **link, 'control_rate': control_rate}, 'drives': drives}
+
+
+def _cpu_window(bus: BusNodeProcess, window: float,
+                profile_with_pyspy: bool = False) -> dict[str, Any]:
+    """CPU %, per thread, RSS and transactions/s of the bus_node process over ``window``."""
+    tx0 = bus.transactions()
+    threads0 = _thread_cpu(bus.child.pid)
+    cpu0, start = _proc_cpu_seconds(bus.child.pid), time.monotonic()
+    spy = _start_pyspy(bus.child.pid, window) if profile_with_pyspy else None
+    bus.spin_for(window)
+    cpu1, end = _proc_cpu_seconds(bus.child.pid), time.monotonic()
+    threads1 = _thread_cpu(bus.child.pid)
+    result: dict[str, Any] = {
+        'cpu_percent': round(100.0 * (cpu1 - cpu0) / (end - start), 2),
+        'cpu_percent_by_thread': {
+            name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
+            for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0},
+        'transactions_per_s': round((bus.transactions() - tx0) / (end - start), 1),
+        'comm_errors': sum(s.comm_errors for s in bus.last.values()),
+        'rss_mb': round(_proc_rss_mb(bus.child.pid), 1),
+    }
+    if spy is not None:
+        result['pyspy_top'] = _finish_pyspy(spy)
+    return result
+
+
+def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
+              profile_with_pyspy: bool = False) -> dict[str, Any]:
+    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS."""
+    port = _port_path('cpu')
+    tag = f'c{uuid.uuid4().hex[:6]}'
+    # No wire time and no t3.5 wait: this case measures the driver's CPU at the control
+    # rate (four AM drives cannot reach 50 Hz on one real 115200-baud line: section 1).
+    link = {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.timeout': 0.1,
+            'transport.frame_gap': 0.0}
+    result: dict[str, Any] = {'profile': profile_name, 'drives': units,
+                              'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
+        wait_port(port)
+        bus = BusNodeProcess(_bus_document(tag, profile_name, units, link, control_rate),
+                             units, tag)
+        try:
+            bus.wait_all_running(30.0)
+            bus.spin_for(1.0)
+            result.update(_cpu_window(bus, window, profile_with_pyspy))
         finally:
-            child.terminate()
-            try:
-                child.wait(10.0)
-            except subprocess.TimeoutExpired:
-                child.kill()
-            executor.shutdown(timeout_sec=1.0)
-            node.destroy_node()
-            rclpy.try_shutdown(context=context)
-    cpu_percent = 100.0 * (cpu1 - cpu0) / (end - start)
+            bus.close()
     drive = build_controller({'drive.profile': profile_name,
                               'transport.port': '/dev/null'}).drive
     per_cycle = 1 + sum(1.0 / drive._block_every[b] for b in drive.blocks)  # noqa: SLF001
     result.update({
-        'cpu_percent': round(cpu_percent, 2),
-        'cpu_percent_per_drive': round(cpu_percent / units, 2),
-        'transactions_per_s': round((tx1 - tx0) / (end - start), 1),
-        'approx_cycles_per_s': round((tx1 - tx0) / (end - start) / units / per_cycle, 1),
-        'target_percent_per_drive': 5.0,
+        'cpu_percent_per_drive': round(result['cpu_percent'] / units, 2),
+        'approx_cycles_per_s': round(result['transactions_per_s'] / units / per_cycle, 1),
+        'target_percent_per_drive': 3.0 if units > 1 else 5.0,
     })
+    return result
+
+
+def fleet(profile_name: str, units: int, framing: Framing, window: float) -> dict[str, Any]:
+    """Many drives on one wire-timed line, one bus_node process, as fast as the line allows.
+
+    Reports the fraction of the wire's limit reached, the CPU it costs, and the
+    time from launch until every drive is online and running.
+    """
+    profile = load_profile(profile_name)
+    setpoint = profile.parameter(profile.velocity.setpoint).address
+    port = _port_path('fleet')
+    tag = f'f{uuid.uuid4().hex[:6]}'
+    link = {'transport.type': 'modbus_rtu', 'transport.port': port,
+            'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
+            'transport.stopbits': framing.stopbits, 'transport.timeout': 0.1}
+    result: dict[str, Any] = {'profile': profile_name, 'drives': units,
+                              'baudrate': framing.baudrate, 'framing': framing.name}
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, framing.baudrate,
+                    framing.parity, framing.stopbits, emulate=True) as sim:
+        wait_port(port)
+        bus = BusNodeProcess(_bus_document(tag, profile_name, units, link, 10000.0), units,
+                             tag, command_rate=20.0)
+        try:
+            result['startup_to_all_online_s'] = round(bus.wait_all_running(120.0), 2)
+            bus.spin_for(1.0)
+            start = time.monotonic()
+            result.update(_cpu_window(bus, window))
+            records = sim.ask('exchanges', start)
+        finally:
+            bus.close()
+    if records:
+        span = records[-1][0] + framing.exchange_time(records[-1][2], records[-1][3]) - \
+            records[0][0]
+        busy = sum(framing.exchange_time(request, reply) for _, _, request, reply in records)
+        result['wire_busy_ratio'] = round(busy / span, 4)     # the line's duty cycle
+    try:
+        result.update(wire_ratio(records, setpoint, framing))
+    except RuntimeError as exc:         # too few whole cycles: the duty cycle still says it
+        result['cycles_note'] = str(exc)
+    result['target_ratio'], result['target_cpu_percent'] = 0.90, 50.0
     return result
 
 
