@@ -551,12 +551,12 @@ class BusNodeProcess:
     """
 
     def __init__(self, config: dict[str, Any], units: int, tag: str,
-                 command_rate: float = 50.0) -> None:
+                 command_rate: float = 50.0, executor: str = 'events') -> None:
         self._tmp = tempfile.TemporaryDirectory()
         self._log = open(Path(self._tmp.name) / 'bus_node.log', 'w+b')  # noqa: SIM115
         path = Path(self._tmp.name) / 'bus.yaml'
         path.write_text(yaml.safe_dump(config))
-        env = dict(os.environ)
+        env = dict(os.environ, VFD_ROS2_EXECUTOR=executor)
         env['PYTHONPATH'] = os.pathsep.join(
             p for p in (env.get('PYTHONPATH', ''), str(Path(__file__).resolve().parent.parent))
             if p)
@@ -651,20 +651,24 @@ def _cpu_window(bus: BusNodeProcess, window: float,
 
 
 def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
-              profile_with_pyspy: bool = False) -> dict[str, Any]:
-    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS."""
+              profile_with_pyspy: bool = False, executor: str = 'events') -> dict[str, Any]:
+    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS.
+
+    ``executor``: ``events`` (what ships) or ``single`` (the previous design's
+    SingleThreadedExecutor, for the side-by-side figure).
+    """
     port = _port_path('cpu')
     tag = f'c{uuid.uuid4().hex[:6]}'
     # No wire time and no t3.5 wait: this case measures the driver's CPU at the control
     # rate (four AM drives cannot reach 50 Hz on one real 115200-baud line: section 1).
     link = {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.timeout': 0.1,
             'transport.frame_gap': 0.0}
-    result: dict[str, Any] = {'profile': profile_name, 'drives': units,
+    result: dict[str, Any] = {'profile': profile_name, 'drives': units, 'executor': executor,
                               'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
         wait_port(port)
         bus = BusNodeProcess(_bus_document(tag, profile_name, units, link, control_rate),
-                             units, tag)
+                             units, tag, executor=executor)
         try:
             bus.wait_all_running(30.0)
             bus.spin_for(1.0)

@@ -12,14 +12,13 @@ from typing import Any
 
 import pytest
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from harness import DriveClient
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.drive_node import DriveNode
-from vfd_ros2.ros.executable import spin_in_background
+from vfd_ros2.ros.executable import make_executor, spin_in_background
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 
 
@@ -50,7 +49,7 @@ class CanHarness:
                      for node_id in node_ids}
         self.bus = SimulatedCanBus(list(self.sims.values()), self.channel).start()
         self.tester = Node('tester', namespace=f'/t{uuid.uuid4().hex[:8]}', context=context)
-        self.executor = SingleThreadedExecutor(context=context)
+        self.executor = make_executor(context)
         self.executor.add_node(self.tester)
         self.wheels: dict[int, CanWheel] = {}
         for node_id in node_ids:

@@ -15,7 +15,6 @@ from typing import Any, Callable
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -25,7 +24,7 @@ from std_srvs.srv import Trigger
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.drive_node import DriveNode
-from vfd_ros2.ros.executable import spin_in_background
+from vfd_ros2.ros.executable import make_executor, spin_in_background
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
 from vfd_ros2.sim.tcp_server import SimulatedTcpServer
@@ -145,7 +144,7 @@ class DriveHarness(DriveClient):
                                                    for k, v in parameters.items()])
         super().__init__(context, Node('tester', namespace=self.namespace, context=context),
                          'drive')
-        self.executor = SingleThreadedExecutor(context=context)
+        self.executor = make_executor(context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
         self._spin = spin_in_background(self.executor, self.context)

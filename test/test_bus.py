@@ -9,7 +9,6 @@ import uuid
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
@@ -20,7 +19,7 @@ from vfd_ros2.errors import ParameterError
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.bus_node import BusNode
-from vfd_ros2.ros.executable import spin_in_background
+from vfd_ros2.ros.executable import make_executor, spin_in_background
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import SimulatedRtuLine
 
@@ -62,7 +61,7 @@ def agv_bus(ros_context, tmp_path):
                                                     10)
     diagnostics: list[DiagnosticArray] = []
     tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 50)
-    executor = SingleThreadedExecutor(context=ros_context)
+    executor = make_executor(ros_context)
     for node in (bus, *bus.drive_nodes, tester):
         executor.add_node(node)
     spin_in_background(executor, ros_context)
@@ -101,6 +100,11 @@ def test_both_drives_on_one_line_follow_their_commands(agv_bus):
     values = {kv.key: kv.value for kv in diag.values}
     assert diag.level == DiagnosticStatus.OK and float(values['transactions/s']) > 50
     assert 'wire utilisation (%)' in values     # its arithmetic: test_wire_utilisation_*
+    # The bus publishes its drives' entries too (one timer for all, not one per drive).
+    drive_entries = {st.name for d in agv_bus.diagnostics for st in d.status
+                     if 'bus rs485_0' not in st.name}
+    assert any('/left/' in name for name in drive_entries), drive_entries
+    assert any('/right/' in name for name in drive_entries), drive_entries
 
 
 class StepClock:
@@ -269,7 +273,7 @@ def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_
                              'reconnect_period': 0.2} for n in sims}}))
     bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
         Parameter('config_file', value=str(config))])
-    executor = SingleThreadedExecutor(context=ros_context)
+    executor = make_executor(ros_context)
     for node in (bus, *bus.drive_nodes):
         executor.add_node(node)
     spin_in_background(executor, ros_context)

@@ -57,24 +57,39 @@ class BusNode(Node):
             # use_global_arguments=False: a launch file's __ns/__node remaps are meant
             # for the bus node, not for the drives' own namespaces from the bus file.
             self.drive_nodes.append(DriveNode(
-                entry.name, controller=self.bus.controllers[entry.key],
+                entry.name, controller=self.bus.controllers[entry.key], own_timers=False,
                 namespace=entry.namespace, context=self.context, use_global_arguments=False,
                 parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_timer(1.0, self._publish_diagnostics)
+        # One timer per distinct rate serves every drive (a timer per drive node and
+        # rate was a wake-up each, most of a many-drive bus_node's CPU).
+        for rate in sorted({node.status_rate for node in self.drive_nodes}):
+            group = [node for node in self.drive_nodes if node.status_rate == rate]
+            self.create_timer(1.0 / rate, lambda group=group: self._publish_status(group))
+        for rate in sorted({node.diagnostics_rate for node in self.drive_nodes} | {1.0}):
+            group = [node for node in self.drive_nodes if node.diagnostics_rate == rate]
+            self.create_timer(1.0 / rate, lambda group=group, rate=rate:
+                              self._publish_diagnostics(group, with_bus=rate == 1.0))
         self.bus.start()
         self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
                                f'{self.bus.transport.description}')
 
-    def _publish_diagnostics(self) -> None:
+    def _publish_status(self, group: list[DriveNode]) -> None:
+        for node in group:
+            node.publish_status()       # never raises
+
+    def _publish_diagnostics(self, group: list[DriveNode], with_bus: bool) -> None:
+        """One DiagnosticArray: the drives of ``group`` and, once a second, the bus."""
         try:
-            states = [c.state for c in self.bus.controllers.values()]
             array = DiagnosticArray()
             array.header.stamp = self.get_clock().now().to_msg()
-            array.status = [bus_diagnostic(
-                bus_diagnostic_name(self.get_fully_qualified_name(), self.config.name),
-                self.bus.transport.description, self.bus.statistics(),
-                sum(s.online for s in states), len(states))]
+            array.status = [node.diagnostic_status() for node in group]
+            if with_bus:
+                states = [c.state for c in self.bus.controllers.values()]
+                array.status.append(bus_diagnostic(
+                    bus_diagnostic_name(self.get_fully_qualified_name(), self.config.name),
+                    self.bus.transport.description, self.bus.statistics(),
+                    sum(s.online for s in states), len(states)))
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'bus diagnostics failed: {exc}', throttle_duration_sec=5.0)

@@ -12,22 +12,22 @@ Services:
   ~/enable, ~/disable, ~/stop, ~/reset_fault     std_srvs/Trigger
 
 All drive I/O happens in the controller's own thread. Callbacks here only hand
-over commands; service callbacks are coroutines that await the controller's
-result, so one single-threaded executor serves everything and a slow service
-(a stop that waits for the ramp) never holds up status or commands. None of
-them lets an exception reach the executor.
+over commands; a service callback submits its action to the controller and is
+answered from the control thread when it is done (``deferred_service``), so one
+executor thread serves everything and a slow service (a stop that waits for the
+ramp) never holds up status or commands. None of them lets an exception reach
+the executor.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Callable
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.task import Future
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -42,6 +42,7 @@ from ..drives import drive_class_for
 from ..errors import ParameterError, VfdError, quote
 from ..profiles import NO_FAULT
 from ..transports import load_transport_class
+from .deferred_service import Deferred, create_deferred_service
 from .executable import run_node
 from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
 
@@ -59,8 +60,14 @@ class DriveNode(Node):
     """ROS face of one drive; all drive logic lives in DriveController."""
 
     def __init__(self, node_name: str = 'drive', controller: DriveController | None = None,
-                 **kwargs: Any) -> None:
-        """Make a drive node; with ``controller`` given, a bus runs that controller's loop."""
+                 own_timers: bool = True, **kwargs: Any) -> None:
+        """Make a drive node; with ``controller`` given, a bus runs that controller's loop.
+
+        ``own_timers=False``: the owner calls ``publish_status`` and collects
+        ``diagnostic_status`` on its own timers (a bus serves all its drives from
+        one timer per rate instead of two per drive: every timer is an executor
+        wake-up).
+        """
         super().__init__(node_name, **kwargs)
         values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
         transport_class = load_transport_class(str(values['transport.type']))
@@ -79,20 +86,23 @@ class DriveNode(Node):
 
         self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
         self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
         for topic in self.controller.drive.profile.setpoints:
             self.create_subscription(Float64, f'~/{topic}',
                                      lambda msg, t=topic: self._on_setpoint(t, msg), 10)
-        self.create_service(GetDriveParameter, '~/get_drive_parameter', self._on_get_parameter,
-                            qos_profile=SERVICE_QOS)
-        self.create_service(SetDriveParameter, '~/set_drive_parameter', self._on_set_parameter,
-                            qos_profile=SERVICE_QOS)
+        create_deferred_service(self, GetDriveParameter, '~/get_drive_parameter',
+                                self._on_get_parameter, SERVICE_QOS)
+        create_deferred_service(self, SetDriveParameter, '~/set_drive_parameter',
+                                self._on_set_parameter, SERVICE_QOS)
         for action in ('enable', 'disable', 'stop', 'reset_fault'):
-            self.create_service(Trigger, f'~/{action}', self._trigger_handler(action),
-                                qos_profile=SERVICE_QOS)
-        self.create_timer(1.0 / float(values['status_rate']), self._publish_status)
-        self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics)
+            create_deferred_service(self, Trigger, f'~/{action}', self._trigger_handler(action),
+                                    SERVICE_QOS)
+        self.status_rate = float(values['status_rate'])
+        self.diagnostics_rate = float(values['diagnostics_rate'])
+        if own_timers:
+            self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+            self.create_timer(1.0 / self.status_rate, self.publish_status)
+            self.create_timer(1.0 / self.diagnostics_rate, self._publish_diagnostics)
         if self._owns_controller:
             self.controller.start()
         self.get_logger().info(
@@ -127,7 +137,8 @@ class DriveNode(Node):
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'{topic} failed: {exc}')
 
-    def _publish_status(self) -> None:
+    def publish_status(self) -> None:
+        """Publish ``~/status`` and, when it changed, ``~/fault``."""
         try:
             state = self.controller.state
             self._ever_online |= state.online
@@ -146,88 +157,105 @@ class DriveNode(Node):
             self.get_logger().error(f'status publishing failed: {exc}',
                                     throttle_duration_sec=5.0)
 
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """Return this drive's entry on /diagnostics."""
+        name = drive_diagnostic_name(self.get_fully_qualified_name())
+        return diagnostic_status(self.controller.state, name, self._ever_online)
+
     def _publish_diagnostics(self) -> None:
         try:
             array = DiagnosticArray()
             array.header.stamp = self.get_clock().now().to_msg()
-            name = drive_diagnostic_name(self.get_fully_qualified_name())
-            array.status = [diagnostic_status(self.controller.state, name, self._ever_online)]
+            array.status = [self.diagnostic_status()]
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)
 
     # --- services ---------------------------------------------------------------
 
-    async def _wait(self, action: str, *args: object):
-        """Await the controller's result without blocking the executor."""
-        done = Future(executor=self.executor)
-        done.add_done_callback(lambda _future: None)   # wakes the executor on completion
-        self.controller.submit(action, *args).add_done_callback(
-            lambda result: done.set_result(result.result()))
-        return await done
+    def _answer(self, action: str, args: tuple, response: Any,
+                fill: Callable[[Any, Any], None]) -> Deferred:
+        """Submit ``action`` to the control thread; ``fill`` the response when it is done."""
+        deferred = Deferred()
+
+        def done(result: Any) -> None:
+            try:
+                fill(response, result.result())
+            except Exception as exc:  # noqa: BLE001 - the caller gets an answer, always
+                response.success, response.message = False, f'{action} failed: {exc}'
+            deferred.complete(response)
+        self.controller.submit(action, *args).add_done_callback(done)
+        return deferred
 
     def _trigger_handler(self, action: str):
-        async def handle(_request: Trigger.Request,
-                         response: Trigger.Response) -> Trigger.Response:
-            try:
-                result = await self._wait(action)
-                response.success, response.message = result.success, result.message
-            except Exception as exc:  # noqa: BLE001
-                response.success, response.message = False, f'{action} failed: {exc}'
+        def fill(response: Trigger.Response, result: Any) -> None:
+            response.success, response.message = result.success, result.message
             if response.success:
                 self.get_logger().info(f'{action}: {response.message}')
             else:
                 self.get_logger().warning(f'{action} refused: {response.message}')
-            return response
+
+        def handle(_request: Trigger.Request, response: Trigger.Response) -> Any:
+            try:
+                return self._answer(action, (), response, fill)
+            except Exception as exc:  # noqa: BLE001
+                response.success, response.message = False, f'{action} failed: {exc}'
+                return response
         return handle
 
-    async def _on_get_parameter(self, request: GetDriveParameter.Request,
-                          response: GetDriveParameter.Response) -> GetDriveParameter.Response:
+    def _on_get_parameter(self, request: GetDriveParameter.Request,
+                          response: GetDriveParameter.Response) -> Any:
+        def fill(response: GetDriveParameter.Response, result: Any) -> None:
+            response.success, response.message = result.success, result.message
+            if result.value is None:
+                return
+            value = result.value
+            parameter = value.parameter
+            response.name = parameter.name
+            response.code = parameter.code
+            response.value = float(value.value)
+            response.raw_value = int(value.raw)
+            response.unit = parameter.unit
+            response.value_text = value.text
+            response.minimum = float(parameter.minimum) if parameter.minimum is not None \
+                else -math.inf
+            response.maximum = float(parameter.maximum) if parameter.maximum is not None \
+                else math.inf
+            response.writable = self.controller.parameter_writable(parameter.code)
         try:
             self.controller.drive.profile.parameter(request.name)   # unknown: answer at once
-            result = await self._wait('get_parameter', request.name)
-            response.success, response.message = result.success, result.message
-            if result.value is not None:
-                value = result.value
-                parameter = value.parameter
-                response.name = parameter.name
-                response.code = parameter.code
-                response.value = float(value.value)
-                response.raw_value = int(value.raw)
-                response.unit = parameter.unit
-                response.value_text = value.text
-                response.minimum = float(parameter.minimum) if parameter.minimum is not None \
-                    else -math.inf
-                response.maximum = float(parameter.maximum) if parameter.maximum is not None \
-                    else math.inf
-                response.writable = self.controller.parameter_writable(parameter.code)
+            return self._answer('get_parameter', (request.name,), response, fill)
         except ParameterError as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # noqa: BLE001
             response.success, response.message = False, f'get failed: {exc}'
         return response
 
-    async def _on_set_parameter(self, request: SetDriveParameter.Request,
-                          response: SetDriveParameter.Response) -> SetDriveParameter.Response:
-        try:
-            # Everything that can be judged without the drive is judged here, so a bad
-            # request never reaches the control loop (and is answered at once).
-            self.controller.check_parameter_write(request.name, float(request.value))
-            result = await self._wait('set_parameter', request.name, float(request.value),
-                                      bool(request.persistent))
+    def _on_set_parameter(self, request: SetDriveParameter.Request,
+                          response: SetDriveParameter.Response) -> Any:
+        def fill(response: SetDriveParameter.Response, result: Any) -> None:
             response.success, response.message = result.success, result.message
             if result.value is not None:
                 response.value = float(result.value.value)
                 response.raw_value = int(result.value.raw)
                 response.unit = result.value.parameter.unit
+            if not response.success:
+                self._log_refused_set(request, response.message)
+        try:
+            # Everything that can be judged without the drive is judged here, so a bad
+            # request never reaches the control loop (and is answered at once).
+            self.controller.check_parameter_write(request.name, float(request.value))
+            return self._answer('set_parameter', (request.name, float(request.value),
+                                                  bool(request.persistent)), response, fill)
         except ParameterError as exc:
             response.success, response.message = False, str(exc)
         except Exception as exc:  # noqa: BLE001
             response.success, response.message = False, f'set failed: {exc}'
-        if not response.success:
-            self.get_logger().warning(f'set {quote(request.name)} = {request.value}: '
-                                      f'{response.message}')
+        self._log_refused_set(request, response.message)
         return response
+
+    def _log_refused_set(self, request: SetDriveParameter.Request, message: str) -> None:
+        self.get_logger().warning(f'set {quote(request.name)} = {request.value}: {message}')
 
     def destroy_node(self) -> None:
         # Commands the drive to stop before the port closes (a bus does it for its drives).

@@ -1,7 +1,17 @@
-"""What every executable's main() does: the Jazzy spin and shutdown idiom, once."""
+"""What every executable's main() does: the Jazzy spin and shutdown idiom, once.
+
+Executables spin on rclpy's ``EventsExecutor`` (``rclpy.experimental``, in the
+Jazzy wheels): the ``SingleThreadedExecutor`` rebuilds its wait set from every
+entity of every node on each wake-up, which was most of a ``bus_node``'s CPU
+(a drive node has a subscription, timers and a dozen services). The events
+executor is driven by ``spin_once`` in a loop: its ``spin()`` runs in C++ without
+ever releasing the GIL, which starves the drives' control threads.
+``VFD_ROS2_EXECUTOR=single`` selects the previous executor (benchmarks compare).
+"""
 
 from __future__ import annotations
 
+import os
 import threading
 from typing import Callable, Iterable
 
@@ -28,10 +38,10 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     node = None
     try:
         node = make_node()
-        executor = SingleThreadedExecutor()
+        executor = make_executor()
         for each in (node, *extra_nodes(node)):
             executor.add_node(each)
-        executor.spin()
+        spin_until_shutdown(executor, node.context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except CONFIGURATION_ERRORS as exc:
@@ -42,6 +52,27 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+#: the environment variable naming the executor (``events`` or ``single``)
+EXECUTOR_VARIABLE = 'VFD_ROS2_EXECUTOR'
+
+
+def make_executor(context: Context | None = None) -> Executor:
+    """Return the executor to spin: events, unless ``VFD_ROS2_EXECUTOR=single``."""
+    choice = os.environ.get(EXECUTOR_VARIABLE, 'events')
+    if choice == 'single':
+        return SingleThreadedExecutor(context=context)
+    if choice != 'events':
+        raise ValueError(f'{EXECUTOR_VARIABLE}={choice!r}: expected events or single')
+    from rclpy.experimental import EventsExecutor
+    return EventsExecutor(context=context)
+
+
+def spin_until_shutdown(executor: Executor, context: Context) -> None:
+    """Spin until Ctrl-C / SIGTERM shuts ``context`` down, the GIL released between events."""
+    while context.ok():
+        executor.spin_once(timeout_sec=0.1)
 
 
 def spin_in_background(executor: Executor, context: Context) -> threading.Thread:
