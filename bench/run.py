@@ -87,10 +87,16 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
     watchdog = [('watchdog 4 x 9600', lambda: cases.watchdog_on_bus(
         'boneng_am', 4, Framing(9600), 2 if quick else 5))]
     cpu_window = 3.0 if quick else 10.0
-    cpu = [(f'cpu x{units}', lambda u=units: cases.cpu_usage(
-        'boneng_am', u, cpu_window, profile_with_pyspy=not quick)) for units in (1, 4)]
+    # The previous design's executor next to what ships (VFD_ROS2_EXECUTOR).
+    cpu = [(f'cpu x{units} {executor}', lambda u=units, e=executor: cases.cpu_usage(
+        'boneng_am', u, cpu_window, profile_with_pyspy=not quick and e == 'events',
+        executor=e)) for executor in ('single', 'events') for units in (1, 4)]
+    fleet_units = 8 if quick else 32
+    fleet = [(f'fleet {fleet_units} x 115200', lambda: cases.fleet(
+        'boneng_am', fleet_units, Framing(115200), 5.0 if quick else 20.0))]
     return {'bus_efficiency': efficiency, 'software_floor': floor,
-            'command_latency': latency, 'adapters': adapters, 'watchdog': watchdog, 'cpu': cpu}
+            'command_latency': latency, 'adapters': adapters, 'watchdog': watchdog, 'cpu': cpu,
+            'fleet': fleet}
 
 
 def canopen_section(quick: bool) -> dict[str, Any]:

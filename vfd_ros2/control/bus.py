@@ -10,6 +10,7 @@ the others; it alone goes offline.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -122,7 +123,8 @@ class Bus:
                                 for c in self.controllers.values()}.values())
         for controller in self.controllers.values():
             # On one line, any drive's new command goes out before the next status read.
-            controller.preempt_hook = self.preempt
+            controller.preempt_hook = self.preempt_between_reads
+            controller.request_preempt = self._command_arrived
         rate = float(config.settings.get('control_rate', 50.0))
         self.period = 1.0 / rate
         self.addressing_interval = self._addressing_interval()
@@ -134,6 +136,13 @@ class Bus:
         self._connect_turn = 0
         self._broadcast_for: tuple[float, ...] = ()
         self.broadcast_stops = 0      # watchdog trips of every running drive, stopped at once
+        # What the checks before every status read look at, so that they cost nothing
+        # when there is nothing to do (scanning every drive before every read was most
+        # of a 32-drive bus's time): a new command arrived, and the earliest moment a
+        # running drive's watchdog can expire (feeding only moves it later, so an old
+        # value errs towards checking too early).
+        self._command_waiting = False
+        self._watchdog_check_at = 0.0
 
     def _addressing_interval(self) -> float:
         """Worst-case time between two requests to any drive of this bus.
@@ -155,14 +164,32 @@ class Bus:
         due = [c for c in controllers if c.connect_due]
         chosen = due[self._connect_turn % len(due)] if due else None
         self._connect_turn += 1
+        self._command_waiting = False           # every command is written now
+        self._watchdog_check_at = self.preempt_at() or math.inf
         for controller in controllers:          # commands first, for every drive ...
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
             controller.command_phase(connect_allowed=controller is chosen)
         for transport in self.transports:       # (CANopen: one SYNC applies them all)
             transport.end_command_burst()
+        # Drives may have started running: their watchdogs count from here.
+        self._watchdog_check_at = self.preempt_at() or math.inf
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
+
+    def _command_arrived(self) -> None:
+        """Note a drive's new command (any thread): it goes out before the next status read."""
+        self._command_waiting = True
+        if self._loop is not None:
+            self._loop.request_preempt()
+
+    def preempt_between_reads(self) -> None:
+        """``preempt`` before a status read, when a command waits or a watchdog may be due."""
+        if not self._command_waiting and self._clock() < self._watchdog_check_at:
+            return
+        self._command_waiting = False
+        self.preempt()
+        self._watchdog_check_at = self.preempt_at() or math.inf
 
     def preempt(self) -> None:
         """Write every drive's new command now, before the next status read."""
@@ -184,8 +211,10 @@ class Bus:
         transport = self.transport
         if not getattr(transport, 'broadcasts', False) or len(self.controllers) < 2:
             return
-        running = [c for c in self.controllers.values() if c.runs]
         horizon = self._clock() + 0.002
+        if horizon < self._watchdog_check_at:
+            return              # no running drive's watchdog expires this soon
+        running = [c for c in self.controllers.values() if c.runs]
         if len(running) < 2 or not all(c.watchdog_due(horizon) for c in running):
             return
         plans = {c.drive.stop_broadcast() if hasattr(c.drive, 'stop_broadcast') else ()
@@ -220,8 +249,6 @@ class Bus:
                                    self.finish, self._clock, preempt=self.preempt,
                                    preempt_at=self.preempt_at,
                                    priority=int(self.config.settings.get('realtime_priority', 0)))
-            for controller in self.controllers.values():
-                controller.request_preempt = self._loop.request_preempt
             self._loop.start()
             for controller in self.controllers.values():
                 controller.loop_notes = self._loop.notes

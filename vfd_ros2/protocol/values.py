@@ -16,27 +16,36 @@ class ValueType(str, enum.Enum):
     UINT8 = 'uint8'
     INT8 = 'int8'
 
+    # Looked up, not computed: these run for every register of every transaction.
     @property
     def register_count(self) -> int:
-        return 2 if self in (ValueType.UINT32, ValueType.INT32) else 1
+        return _LAYOUT[self][0]
 
     @property
     def bits(self) -> int:
         """Width of the value on the wire (CANopen object size)."""
-        if self in (ValueType.UINT8, ValueType.INT8):
-            return 8
-        return 16 * self.register_count
+        return _LAYOUT[self][1]
 
     @property
     def signed(self) -> bool:
-        return self in (ValueType.INT8, ValueType.INT16, ValueType.INT32)
+        return _LAYOUT[self][2]
 
     @property
     def bounds(self) -> tuple[int, int]:
-        bits = self.bits
-        if self.signed:
-            return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
-        return 0, (1 << bits) - 1
+        return _LAYOUT[self][3]
+
+
+def _layout(bits: int, signed: bool) -> tuple[int, int, bool, tuple[int, int]]:
+    """Return (registers, bits, signed, (lowest, highest)) of an integer type."""
+    bounds = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+    return max(1, bits // 16), bits, signed, bounds
+
+
+_LAYOUT = {
+    ValueType.UINT16: _layout(16, False), ValueType.INT16: _layout(16, True),
+    ValueType.UINT32: _layout(32, False), ValueType.INT32: _layout(32, True),
+    ValueType.UINT8: _layout(8, False), ValueType.INT8: _layout(8, True),
+}
 
 
 class WordOrder(str, enum.Enum):
