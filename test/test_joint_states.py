@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 import yaml
+from geometry_msgs.msg import TwistStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -27,6 +28,7 @@ from vfd_ros2.errors import ParameterError, ProfileError
 from vfd_ros2.profiles import PROFILE_DIR, available_profiles, load_profile, load_profile_file
 from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.ros.bus_node import BusNode
+from vfd_ros2.ros.diff_drive_node import DiffDriveNode
 from vfd_ros2.ros.executable import spin_in_background
 from vfd_ros2.ros.joint_topics import JointCommandBridge
 from vfd_ros2.sim.model import SimulatedDrive
@@ -129,6 +131,7 @@ def test_modbus_drive_position_comes_from_its_counter(make_harness):
     received = joint_states(h, h.namespace)
     first = wait_for(lambda: received and received[-1], 3.0, 'a JointState')
     assert list(first.name) == ['wheel']          # the namespace's last part
+    assert h.node.controller.state.position_source == 'drive'     # as in /diagnostics
     assert len(first.position) == len(first.velocity) == len(first.effort) == 1
     h.stream(2.0)
     wait_for(lambda: received[-1].velocity[0] == pytest.approx(2.0, abs=0.05), 6.0,
@@ -152,6 +155,7 @@ def test_drive_without_a_counter_integrates_its_measured_speed(make_harness):
     h = make_harness(profile='boneng_am', node_parameters={
         'auto_enable': True, 'joint_name': 'left_wheel_joint'})
     assert not h.profile.position.from_drive
+    assert h.node.controller.state.position_source == 'integrated'
     received = joint_states(h, h.namespace)
     h.stream(2.0)
     wait_for(lambda: received and received[-1].velocity[0] == pytest.approx(2.0, abs=0.05),
@@ -239,7 +243,8 @@ def joint_bus(ros_context, tmp_path):
     streaming.set()
     threading.Thread(target=stream, daemon=True).start()
     bench = type('JointBus', (), {})()
-    bench.__dict__.update(sims=sims, bus=bus, states=states, command=command,
+    bench.__dict__.update(sims=sims, bus=bus, states=states, command=command, prefix=prefix,
+                          executor=executor, context=ros_context,
                           statuses=lambda: {w: n.controller.state for w, n in
                                             zip(WHEELS, bus.drive_nodes)})
     wait_for(lambda: all(s.online for s in bench.statuses().values()), 10.0, 'drives online')
@@ -292,3 +297,42 @@ def test_joint_names_must_be_unique_on_a_bus():
     drives = [SimpleNamespace(joint_name='same'), SimpleNamespace(joint_name='same')]
     with pytest.raises(ParameterError, match='same'):
         JointCommandBridge(None, drives, '/robot_joint_commands', '', 50.0)
+
+
+def test_diff_drive_odometry_follows_the_drives_counters(joint_bus):
+    """diff_drive on the bus's drives: the pose is the wheels' counted turns."""
+    prefix, radius = joint_bus.prefix, 0.1
+    parameters = {'wheel_radius': radius, 'track_width': 0.5,
+                  'max_linear_acceleration': 0.0, 'max_angular_acceleration': 0.0}
+    for side in ('left', 'right'):
+        wheel = f'{prefix}/{side}_wheel'
+        parameters.update({f'{side}_wheel_command_topic': f'{wheel}/drive/velocity_command',
+                           f'{side}_wheel_status_topic': f'{wheel}/drive/status',
+                           f'{side}_wheel_joint_states_topic': f'{wheel}/joint_states'})
+    diff = DiffDriveNode('diff_drive', namespace=prefix, context=joint_bus.context,
+                         parameter_overrides=[Parameter(k, value=v)
+                                              for k, v in parameters.items()])
+    cmd_vel = diff.create_publisher(TwistStamped, f'{prefix}/cmd_vel', 10)
+    joint_bus.executor.add_node(diff)
+    try:
+        wait_for(lambda: diff.odometry_source == 'position', 5.0, 'position feedback')
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:
+            command = TwistStamped()
+            command.header.stamp = diff.get_clock().now().to_msg()
+            command.twist.linear.x = 0.3
+            cmd_vel.publish(command)
+            time.sleep(0.05)
+        sims = joint_bus.sims
+        wait_for(lambda: all(s.speed_rpm == 0.0 for s in sims.values()), 5.0, 'stopped')
+        counts_per_rev = sims['left_wheel'].profile.position.counts_per_rev
+        left = expected_position(sims['left_wheel'].position_count, counts_per_rev)
+        right = -expected_position(sims['right_wheel'].position_count, counts_per_rev)
+        assert left > 3.0 and right > 3.0                  # about 0.4 m each
+        wait_for(lambda: diff.odometry.x_m == pytest.approx(radius * (left + right) / 2,
+                                                            abs=1e-3), 3.0,
+                 'odometry = the counted turns')
+        assert diff.odometry_source == 'position'
+    finally:
+        joint_bus.executor.remove_node(diff)
+        diff.destroy_node()

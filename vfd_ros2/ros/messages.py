@@ -152,6 +152,9 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         ('running', state.running),
         ('commanded velocity (rad/s)', f'{state.commanded_velocity:.4f}'),
         ('measured velocity (rad/s)', f'{state.measured_velocity:.4f}'),
+        ('position (rad)', f'{state.position:.4f}'),
+        ('position source', "the drive's counter" if state.position_source == 'drive'
+         else 'measured speed integrated'),
         ('output frequency (Hz)', state.measured.get('output_frequency', math.nan)),
         ('output current (A)', state.measured.get('output_current', math.nan)),
         ('DC bus voltage (V)', state.measured.get('dc_bus_voltage', math.nan)),
