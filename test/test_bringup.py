@@ -175,6 +175,8 @@ def test_bus_launch_file(monkeypatch):
     actions = _load_launch_file('bus.launch.py').generate_launch_description()
     node = next(a for a in actions if a.kwargs.get('executable') == 'bus_node')
     assert node.kwargs['parameters'][0]['config_file'].args == ('config_file',)
+    for topic in ('joint_commands_topic', 'joint_states_topic'):
+        assert node.kwargs['parameters'][0][topic].args == (topic,)
 
 
 def test_aggregator_yaml_groups_the_diagnostic_names():
