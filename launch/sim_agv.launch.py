@@ -4,7 +4,7 @@ One bus_node serves a drive node per wheel; diff_drive turns cmd_vel into wheel
 commands and the measured wheel speeds into odom.
 
     ros2 launch vfd_ros2 sim_agv.launch.py [directory:=/tmp/vfd_ros2/sim_agv]
-    ros2 topic pub -r 20 /agv/cmd_vel geometry_msgs/msg/Twist "{linear: {x: 0.3}}"
+    ros2 topic pub -r 20 /agv/cmd_vel geometry_msgs/msg/TwistStamped "{twist: {linear: {x: 0.3}}}"
     ros2 param set /agv/sim_drive silent_unit_ids "[2]"     # pull the right drive off the line
 
 The node list and the bus file come from vfd_ros2.apps.bringup (unit-tested); this

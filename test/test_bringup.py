@@ -155,6 +155,8 @@ def test_sim_agv_puts_both_drives_on_one_line_behind_one_bus_node(tmp_path):
     namespaces = [d.namespace for d in bus.drives]
     assert diff['left_wheel_command_topic'] == f'{namespaces[0]}/drive/velocity_command'
     assert diff['right_wheel_status_topic'] == f'{namespaces[1]}/drive/status'
+    assert diff['left_wheel_joint_states_topic'] == f'{namespaces[0]}/joint_states'
+    assert diff['use_stamped_vel'] is True
     assert [d.settings['invert_direction'] for d in bus.drives] == [False, True]
 
 
@@ -173,6 +175,8 @@ def test_bus_launch_file(monkeypatch):
     actions = _load_launch_file('bus.launch.py').generate_launch_description()
     node = next(a for a in actions if a.kwargs.get('executable') == 'bus_node')
     assert node.kwargs['parameters'][0]['config_file'].args == ('config_file',)
+    for topic in ('joint_commands_topic', 'joint_states_topic'):
+        assert node.kwargs['parameters'][0][topic].args == (topic,)
 
 
 def test_aggregator_yaml_groups_the_diagnostic_names():

@@ -2,7 +2,8 @@
 
 The node tests run DiffDriveNode in-process against a tester node that plays
 the two drive nodes: it records the wheel commands and publishes DriveStatus
-with measured velocities, as a real drive_node would.
+with measured velocities (and, when given, JointState with wheel positions), as a
+real drive_node would.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import uuid
 from typing import Any
 
 import pytest
-from geometry_msgs.msg import Twist
+from geometry_msgs.msg import Twist, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from harness import wait_for
@@ -228,12 +230,19 @@ class FakeWheel:
         tester.create_subscription(Float64, f'{prefix}/drive/velocity_command',
                                    lambda msg: self.commands.append(msg.data), 50)
         self.status_pub = tester.create_publisher(DriveStatus, f'{prefix}/drive/status', 10)
+        self.position: float | None = None     # rad; None: no JointState published
+        self.joint_pub = tester.create_publisher(JointState, f'{prefix}/joint_states', 10)
 
     def publish_status(self, stamp: Any) -> None:
         if self.publishing:
             status = DriveStatus(online=self.online, measured_velocity=self.measured)
             status.header.stamp = stamp
             self.status_pub.publish(status)
+            if self.position is not None:
+                joint = JointState(name=['wheel'], position=[self.position],
+                                   velocity=[self.measured])
+                joint.header.stamp = stamp
+                self.joint_pub.publish(joint)
 
 
 class DiffDriveRig:
@@ -250,6 +259,8 @@ class DiffDriveRig:
             'right_wheel_command_topic': f'{ns}/right_wheel/drive/velocity_command',
             'left_wheel_status_topic': f'{ns}/left_wheel/drive/status',
             'right_wheel_status_topic': f'{ns}/right_wheel/drive/status',
+            'left_wheel_joint_states_topic': f'{ns}/left_wheel/joint_states',
+            'right_wheel_joint_states_topic': f'{ns}/right_wheel/joint_states',
             'max_linear_acceleration': 0.0, 'max_angular_acceleration': 0.0,
             'max_linear_velocity': 2.0, 'max_angular_velocity': 4.0,
         }
@@ -262,7 +273,10 @@ class DiffDriveRig:
         self.right = FakeWheel(self.tester, f'{ns}/right_wheel')
         self.odom: list[Odometry] = []
         self.tester.create_subscription(Odometry, f'{ns}/odom', self.odom.append, 100)
-        self.cmd_pub = self.tester.create_publisher(Twist, f'{ns}/cmd_vel', 10)
+        self.stamped = bool(values.get('use_stamped_vel', True))
+        self.stamp_age = 0.0       # s subtracted from the stamp of each TwistStamped sent
+        self.cmd_pub = self.tester.create_publisher(TwistStamped if self.stamped else Twist,
+                                                    f'{ns}/cmd_vel', 10)
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.tester)
@@ -291,8 +305,14 @@ class DiffDriveRig:
             time.sleep(0.02)
 
     def send(self, linear: float, angular: float) -> None:
-        msg = Twist()
-        msg.linear.x, msg.angular.z = linear, angular
+        twist = Twist()
+        twist.linear.x, twist.angular.z = linear, angular
+        if not self.stamped:
+            self.cmd_pub.publish(twist)
+            return
+        msg = TwistStamped(twist=twist)
+        now = self.tester.get_clock().now().nanoseconds - round(self.stamp_age * 1e9)
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(now, 1_000_000_000)
         self.cmd_pub.publish(msg)
 
     def wait_commands(self, left: float, right: float, timeout: float = 3.0,
@@ -407,14 +427,15 @@ def test_odometry_integrates_measured_speeds_in_rep105_frames(make_rig):
     assert final.pose.pose.position.x == pytest.approx(0.3 * driven, abs=0.03)
     assert final.pose.pose.position.y == pytest.approx(0.0, abs=1e-9)
     assert final.pose.pose.orientation.w == pytest.approx(1.0)
-    # Message to message, the pose advances by v * (stamp difference).
+    # Message to message, the pose advances by v * (stamp difference); a cycle the
+    # executor delayed counts at most 5 periods (0.1 s at 50 Hz, the node's cap).
     moving = [m for m in rig.odom if m.twist.twist.linear.x == pytest.approx(0.3)]
     assert len(moving) > 20
     for a, b in zip(moving[5:], moving[6:]):
         dt = (b.header.stamp.sec - a.header.stamp.sec) + \
             (b.header.stamp.nanosec - a.header.stamp.nanosec) * 1e-9
         assert b.pose.pose.position.x - a.pose.pose.position.x == \
-            pytest.approx(0.3 * dt, abs=1e-6)
+            pytest.approx(0.3 * min(dt, 0.1), abs=1e-6)
     assert final.header.frame_id == 'odom' and final.child_frame_id == 'base_link'
     assert final.pose.covariance[0] > 0.0
 
@@ -480,3 +501,100 @@ def test_bad_parameters_are_refused(ros_context):
             DiffDriveNode('diff_drive', namespace=f'/t{uuid.uuid4().hex[:8]}',
                           context=ros_context,
                           parameter_overrides=[Parameter(name, value=value)])
+
+
+# --- stamped commands and position feedback ---------------------------------------
+
+
+def test_plain_twist_still_works_with_use_stamped_vel_false(make_rig):
+    rig = make_rig(use_stamped_vel=False)
+    rig.twist = (0.5, 0.4)
+    rig.wait_commands(4.0, 6.0, what='arc from a Twist')
+
+
+def test_stale_stamped_cmd_vel_is_rejected_and_the_wheels_stay_stopped(make_rig):
+    rig = make_rig(cmd_vel_timeout=0.5)
+    rig.stamp_age = 2.0                     # queued somewhere for 2 s
+    rig.twist = (0.5, 0.0)
+    wait_for(lambda: rig.node.stale_commands > 5, 3.0, 'stale commands counted')
+    assert rig.left.commands and set(rig.left.commands) == {0.0}
+    assert set(rig.right.commands) == {0.0}
+    rig.stamp_age = 0.1                     # fresh enough: the same stream moves the wheels
+    rig.wait_commands(5.0, 5.0, what='fresh stamped commands')
+
+
+def test_stale_stamped_cmd_vel_keeps_a_simulated_motor_stopped(ros_context, tmp_path):
+    """End to end: diff_drive -> drive_node -> simulated drive on a pty line."""
+    from harness import DriveHarness
+    drive = DriveHarness(ros_context, str(tmp_path / 'line'),
+                         node_parameters={'auto_enable': True})
+    rig = None
+    try:
+        drive.wait_status(lambda s: s.online, 10.0, 'drive online')
+        topic = f'{drive.namespace}/drive'
+        rig = DiffDriveRig(ros_context, {
+            'left_wheel_command_topic': f'{topic}/velocity_command',
+            'left_wheel_status_topic': f'{topic}/status'})
+        rig.stamp_age = 1.0
+        rig.twist = (0.5, 0.0)
+        seen = len(drive.statuses)
+        wait_for(lambda: rig.node.stale_commands > 10, 3.0, 'stale commands')
+        drive.wait_cycles(20)
+        # diff_drive holds the wheel at zero (fresh zero commands): it never turns.
+        window = drive.statuses[seen:]
+        assert len(window) > 5 and drive.sim.speed_rpm == 0.0
+        assert all(s.commanded_velocity == 0.0 and s.measured_velocity == 0.0 for s in window)
+        rig.stamp_age = 0.0
+        wait_for(lambda: drive.sim.speed_rpm > 100.0, 6.0, 'fresh commands move the motor')
+    finally:
+        if rig is not None:
+            rig.close()
+        drive.close()
+
+
+def test_odometry_follows_wheel_positions_when_the_drives_report_them(make_rig):
+    rig = make_rig()
+    rig.left.position = rig.right.position = 0.0
+    wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'position feedback')
+    # The positions advance (10 rad = 1 m) while the measured speeds say 0: the pose
+    # follows the positions, the twist the speeds.
+    rig.left.position = rig.right.position = 10.0
+    wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.position.x == pytest.approx(1.0),
+             3.0, 'pose from positions')
+    assert rig.odom[-1].twist.twist.linear.x == 0.0
+    # Left turned -2.5 rad and right +2.5 rad: 1 rad counter-clockwise on the spot.
+    rig.left.position, rig.right.position = 7.5, 12.5
+    wait_for(lambda: rig.odom[-1].pose.pose.orientation.z == pytest.approx(math.sin(0.5)),
+             3.0, 'yaw 1 rad from positions')
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(1.0)
+    # Without positions (the JointState stops) the speeds are integrated again; the
+    # positions' jump while they were missing is not counted twice.
+    rig.left.position = rig.right.position = None
+    wait_for(lambda: rig.node.odometry_source == 'velocity', 3.0, 'speeds integrated')
+    x = rig.odom[-1].pose.pose.position.x
+    rig.left.position, rig.right.position = 100.0, 100.0
+    wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'positions again')
+    count = len(rig.odom)
+    wait_for(lambda: len(rig.odom) > count + 10, 2.0, 'more odom')
+    assert rig.odom[-1].pose.pose.position.x == pytest.approx(x, abs=1e-9)
+
+
+def test_position_feedback_false_integrates_speeds(make_rig):
+    rig = make_rig(position_feedback=False)
+    rig.left.position = rig.right.position = 0.0
+    wait_for(lambda: rig.odom and rig.odom[-1].twist.covariance[0] < 1.0, 3.0, 'valid odom')
+    rig.left.position = rig.right.position = 10.0
+    count = len(rig.odom)
+    wait_for(lambda: len(rig.odom) > count + 10, 2.0, 'more odom')
+    assert rig.odom[-1].pose.pose.position.x == 0.0 and rig.node.odometry_source == 'velocity'
+
+
+def test_odometry_advance_from_wheel_increments():
+    kin = DiffDriveKinematics(R, TRACK)
+    odom = OdometryIntegrator(kin)
+    odom.advance(10.0, 10.0, 3.0, 3.0)              # 1 m straight; 0.3 m/s measured
+    assert (odom.x_m, odom.y_m, odom.yaw_rad) == (pytest.approx(1.0), 0.0, 0.0)
+    assert odom.estimate.linear_m_s == pytest.approx(0.3) and odom.twist_valid
+    quarter = math.pi / 2 * TRACK / 2 / R           # each wheel's angle for a quarter turn
+    odom.advance(-quarter, quarter, 0.0, 0.0)
+    assert odom.yaw_rad == pytest.approx(math.pi / 2) and odom.x_m == pytest.approx(1.0)

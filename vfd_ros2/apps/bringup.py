@@ -127,8 +127,8 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
     """Return the simulated AGV's nodes: one RS-485 line, one bus_node, diff_drive.
 
     The wheels' drives sit on ONE simulated line (slave ids 1..n), one bus_node
-    serves a drive node per wheel, and diff_drive turns cmd_vel into wheel
-    commands and measured wheel speeds into odom. The bus file must exist: see
+    serves a drive node per wheel, and diff_drive turns cmd_vel (TwistStamped)
+    into wheel commands and the wheels' joint states into odom. The bus file must exist: see
     ``write_bus_file``.
     """
     bus = sim_agv_bus(directory, profile, wheels, gear_ratio)
@@ -145,5 +145,7 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             'right_wheel_command_topic': f'/agv/{wheels[1]}/drive/velocity_command',
             'left_wheel_status_topic': f'/agv/{wheels[0]}/drive/status',
             'right_wheel_status_topic': f'/agv/{wheels[1]}/drive/status',
-            'max_wheel_velocity': 5.0}),
+            'left_wheel_joint_states_topic': f'/agv/{wheels[0]}/joint_states',
+            'right_wheel_joint_states_topic': f'/agv/{wheels[1]}/joint_states',
+            'use_stamped_vel': True, 'max_wheel_velocity': 5.0}),
     ]

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import rclpy
-from geometry_msgs.msg import Twist
+from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
@@ -160,7 +160,7 @@ def _set_silent(commander: Commander, units: list[int]) -> None:
 
 def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
     """Drive AGV_PROFILE through cmd_vel; unplug the right drive during step 3."""
-    cmd_vel = commander.create_publisher(Twist, '/agv/cmd_vel', 10)
+    cmd_vel = commander.create_publisher(TwistStamped, '/agv/cmd_vel', 10)
     print('  time |  v m/s  w rad/s | ' + ' | '.join(
         f'{w.name:>11}: rad/s  state   ' for w in commander.wheels), file=out)
     followed = True
@@ -172,9 +172,10 @@ def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
         step_end = time.monotonic() + duration
         next_print = 0.0
         while time.monotonic() < step_end:
-            twist = Twist()
-            twist.linear.x, twist.angular.z = linear, angular
-            cmd_vel.publish(twist)
+            command = TwistStamped()     # diff_drive rejects stale stamps
+            command.header.stamp = commander.get_clock().now().to_msg()
+            command.twist.linear.x, command.twist.angular.z = linear, angular
+            cmd_vel.publish(command)
             commander.spin_for(0.05)
             now = time.monotonic()
             if now >= next_print:

@@ -32,7 +32,9 @@ from typing import Callable
 
 from ..drives import Drive, HostLossProtection, Reading
 from ..errors import ParameterError, ProtocolException, TransportError, VfdError, quote
+from ..protocol.scaling import VelocityScaling
 from .actions import ActionQueue, ServiceActions
+from .joint import JointTracker, joint_config
 from .link import LinkSupervisor
 from .loop import CycleLoop
 from .permit import Conditions, Intent, decide
@@ -120,6 +122,10 @@ class DriveController:
         #: run before each status read instead of this drive's own ``preempt``
         #: (a bus writes every drive's new command first)
         self.preempt_hook: Callable[[], None] | None = None
+        #: the wheel as a joint (position, velocity, effort); the factory sets the node's
+        #: counts_per_rev and rated torque
+        self.joint = JointTracker(joint_config(
+            drive.profile, getattr(drive, 'scaling', None) or VelocityScaling()))
         self._state = DriveState(hardware_id=drive.hardware_id, protection=self.protection)
 
     # --- sizing -------------------------------------------------------------------
@@ -495,6 +501,8 @@ class DriveController:
             run_state, reason = RunState.BLOCKED, reading.stuck
         flags = reading.flags
         measured = reading.measured_velocity
+        joint = self.joint
+        joint.update(reading, self._clock(), self.link.online)
         running = flags.get('running', False)
         at_speed = flags.get('at_speed', running and math.isfinite(measured) and
                              abs(measured - commanded) <= self.config.at_speed_tolerance)
@@ -516,6 +524,9 @@ class DriveController:
             measured_velocity=measured,
             setpoint_raw=self.drive.last_setpoint_raw,
             measured=dict(reading.values),
+            position=joint.position,
+            position_source=joint.config.source,
+            effort=joint.effort,
             active_fault=reading.fault,
             warning_code=reading.warning_code,
             warning_subcode=reading.warning_subcode,

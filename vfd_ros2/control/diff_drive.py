@@ -179,7 +179,7 @@ def _diagonal(values: tuple[float, ...]) -> tuple[float, ...]:
 
 
 class OdometryIntegrator:
-    """Dead reckoning of a differential drive from measured wheel speeds.
+    """Dead reckoning of a differential drive from wheel positions or measured speeds.
 
     Each ``update`` holds the wheel speeds constant over ``dt_s`` and integrates
     the resulting motion exactly: a circular arc (or a straight segment when the
@@ -221,15 +221,31 @@ class OdometryIntegrator:
         dt_s = max(0.0, float(dt_s))
         if dt_s == 0.0:
             return
-        dtheta = angular * dt_s
-        distance = linear * dt_s
+        self._move(linear * dt_s, angular * dt_s)
+
+    def advance(self, left_delta_rad: float, right_delta_rad: float,
+                left_rad_s: float, right_rad_s: float) -> None:
+        """Advance the pose by the angles the wheels turned (rad), from their positions.
+
+        As diff_drive_controller does with position feedback: the pose follows the
+        wheels' position increments (no error from sampling the speed), the twist
+        their measured speeds (rad/s).
+        """
+        distance, dtheta = self.kinematics.body_velocity(left_delta_rad, right_delta_rad)
+        self.linear_m_s, self.angular_rad_s = self.kinematics.body_velocity(left_rad_s,
+                                                                            right_rad_s)
+        self.twist_valid = True
+        self._move(distance, dtheta)
+
+    def _move(self, distance: float, dtheta: float) -> None:
+        """Move along an arc of length ``distance`` (m) turning by ``dtheta`` (rad)."""
         if abs(dtheta) < 1e-9:
             # Straight (to first order in dtheta): move along the mid-step heading.
             heading = self.yaw_rad + 0.5 * dtheta
             self.x_m += distance * math.cos(heading)
             self.y_m += distance * math.sin(heading)
         else:
-            radius = linear / angular
+            radius = distance / dtheta
             new_yaw = self.yaw_rad + dtheta
             self.x_m += radius * (math.sin(new_yaw) - math.sin(self.yaw_rad))
             self.y_m -= radius * (math.cos(new_yaw) - math.cos(self.yaw_rad))

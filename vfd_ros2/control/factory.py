@@ -14,6 +14,7 @@ from ..drives import drive_class_for
 from ..profiles import load_profile
 from ..transports import Transport, load_transport_class
 from .controller import DriveController
+from .joint import JointTracker, joint_config
 from .settings import SETTINGS, controller_config, prefixed, velocity_scaling
 
 
@@ -52,9 +53,12 @@ def build_controller(values: Mapping[str, Any],
     if transport is None:
         transport = build_transport(merged)
     drive_class = drive_class_for(type(transport))
+    scaling = velocity_scaling(profile, merged)
     drive = drive_class(profile, transport, int(merged['transport.unit_id']),
-                        velocity_scaling(profile, merged), prefixed(merged, 'drive'),
-                        owns_transport=not shared)
+                        scaling, prefixed(merged, 'drive'), owns_transport=not shared)
     controller = DriveController(drive, controller_config(merged))
+    controller.joint = JointTracker(joint_config(
+        profile, scaling, float(merged['position.counts_per_rev']),
+        float(merged['motor.rated_torque'])))
     controller.plan_host_loss()     # alone on its link; a bus re-plans for all its drives
     return controller

@@ -54,6 +54,15 @@ SETTINGS: tuple[Setting, ...] = (
     Setting('action_timeout', 2.0, 's to verify enable and reset_fault'),
     Setting('stop_timeout', 10.0, 's to verify stop and disable (covers the deceleration)'),
     Setting('frame_id', '', 'header.frame_id of ~/status'),
+    Setting('joint_name', '',
+            "JointState name of this wheel ('' = the namespace's last part, e.g. "
+            "left_wheel for /agv/left_wheel, else the node name)"),
+    Setting('position.counts_per_rev', 0.0,
+            "counts per motor revolution of the drive's position counter; 0 = the "
+            "profile's value (unused where the profile integrates the speed)"),
+    Setting('motor.rated_torque', 0.0,
+            "N·m, the motor's rated torque: converts a torque in % to JointState.effort; "
+            '0 = no effort from a percent torque'),
 )
 
 

@@ -60,6 +60,9 @@ class DriveState:
     measured_velocity: float = math.nan
     setpoint_raw: int = 0
     measured: dict[str, float] = field(default_factory=dict)
+    position: float = math.nan          # rad at the output shaft (JointState.position)
+    position_source: str = 'integrated'   # 'drive' (a counter it reports) or 'integrated'
+    effort: float = math.nan            # N·m at the output shaft; NaN = not measured
     active_fault: FaultInfo = NO_FAULT
     warning_code: int = 0
     warning_subcode: int = 0

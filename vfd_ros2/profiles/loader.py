@@ -32,6 +32,8 @@ from .model import (
     ControlSpec,
     ControlStyle,
     DirectionMode,
+    EffortKind,
+    EffortSpec,
     EmcyFault,
     FaultEntry,
     FaultSpec,
@@ -46,6 +48,8 @@ from .model import (
     Parameter,
     Persistence,
     PersistenceKind,
+    PositionSource,
+    PositionSpec,
     Profile,
     SerialDefaults,
     Signal,
@@ -257,6 +261,13 @@ def _identify(item: Mapping[str, Any], parameters: Mapping[str, Parameter],
                         source=str(item.get('source', '')))
 
 
+def _position(item: Mapping[str, Any]) -> PositionSpec:
+    return PositionSpec(source=PositionSource(item.get('source', 'integrated')),
+                        signal=str(item.get('signal', '')),
+                        counts_per_rev=float(item.get('counts_per_rev', 0.0)),
+                        note=str(item.get('note', '')))
+
+
 def _build(path: Path) -> Profile:
     data = _read_yaml(path, 'profile')
     raw_parameters = list(data.get('parameters') or [])
@@ -364,6 +375,11 @@ def _build(path: Path) -> Profile:
         canopen=_canopen(data['canopen'], parameters) if data.get('canopen') else None,
         identify=_identify(data['identify'], parameters, path.name)
         if data.get('identify') else None,
+        position=_position(data.get('position') or {}),
+        effort=EffortSpec(signal=str(data['effort']['signal']),
+                          kind=EffortKind(data['effort']['kind']),
+                          note=str(data['effort'].get('note', '')))
+        if data.get('effort') else None,
         _by_name=by_name,
         _by_address=by_address,
         _by_folded_code={code.casefold(): code for code in parameters},
@@ -457,12 +473,32 @@ def _check_references(profile: Profile) -> None:
         if rule.signal not in roles:
             raise ProfileError(f'{where}: flags.{name} uses signal {rule.signal!r}, '
                                'which monitor does not define')
+    _check_joint_signals(profile, roles)
     if profile.velocity.direction is DirectionMode.COMMAND and \
             'run_reverse' not in profile.control.values:
         raise ProfileError(f'{where}: direction "command" needs control.values.run_reverse')
     for topic, code in profile.setpoints.items():
         if not profile.parameters[code].writable:
             raise ProfileError(f'{where}: setpoints.{topic} names read-only {code}')
+
+
+def _check_joint_signals(profile: Profile, roles: set[str]) -> None:
+    """position.signal and effort.signal name monitored values, on every bus the profile has."""
+    where = profile.source_file
+    wanted = []
+    if profile.position.from_drive:
+        wanted.append(('position.signal', profile.position.signal))
+    if profile.effort is not None:
+        wanted.append(('effort.signal', profile.effort.signal))
+    for label, role in wanted:
+        if role not in roles:
+            raise ProfileError(f'{where}: {label} names {role!r}, which monitor does not define')
+        if profile.canopen is None:
+            continue
+        for name, objects in profile.canopen.object_sets.items():
+            if label == 'position.signal' and role not in objects.monitor:
+                raise ProfileError(f'{where}: {label} names {role!r}, which '
+                                   f'canopen.object_sets.{name}.monitor does not map')
 
 
 def available_profiles() -> list[str]:

@@ -20,11 +20,12 @@ from ..protocol.values import ValueType, WordOrder
 
 __all__ = [
     'Access', 'CanObject', 'CanopenIdentity', 'CanopenSpec', 'CommTimeoutSpec',
-    'CommissioningWrite', 'ControlSpec', 'ControlStyle', 'DirectionMode', 'EmcyFault',
-    'FaultEntry', 'FaultSpec', 'FlagRule', 'FlagRuleKind', 'IdentifyCheck', 'IdentifyExpect',
-    'IdentifySpec', 'ModbusIdentity', 'ModbusSpec', 'ObjectSet', 'Parameter', 'Persistence',
-    'PersistenceKind', 'Profile', 'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction',
-    'ValueType', 'VelocitySpec', 'WordOrder',
+    'CommissioningWrite', 'ControlSpec', 'ControlStyle', 'DirectionMode', 'EffortKind',
+    'EffortSpec', 'EmcyFault', 'FaultEntry', 'FaultSpec', 'FlagRule', 'FlagRuleKind',
+    'IdentifyCheck', 'IdentifyExpect', 'IdentifySpec', 'ModbusIdentity', 'ModbusSpec', 'ObjectSet',
+    'Parameter', 'Persistence', 'PersistenceKind', 'PositionSource', 'PositionSpec', 'Profile',
+    'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction', 'ValueType', 'VelocitySpec',
+    'WordOrder',
 ]
 
 class Access(str, enum.Enum):
@@ -181,6 +182,43 @@ class VelocitySpec:
     pole_pairs: str = ''
     acceleration_time: str = ''
     deceleration_time: str = ''
+    note: str = ''
+
+
+class PositionSource(str, enum.Enum):
+    """Where a wheel's joint position comes from."""
+
+    DRIVE = 'drive'              # a counter the drive reports (encoder counts, 0x6064)
+    INTEGRATED = 'integrated'    # none documented: the driver integrates the measured speed
+
+
+@dataclass(frozen=True)
+class PositionSpec:
+    """The joint position: a monitored counter, or the measured speed integrated."""
+
+    source: PositionSource = PositionSource.INTEGRATED
+    signal: str = ''              # monitor role carrying the count (source drive)
+    counts_per_rev: float = 0.0   # counts per MOTOR revolution (the gear ratio is the node's)
+    note: str = ''
+
+    @property
+    def from_drive(self) -> bool:
+        return self.source is PositionSource.DRIVE
+
+
+class EffortKind(str, enum.Enum):
+    """What the effort signal measures."""
+
+    TORQUE = 'torque'                    # N·m at the motor shaft
+    TORQUE_PERCENT = 'torque_percent'    # % of the motor's rated torque
+
+
+@dataclass(frozen=True)
+class EffortSpec:
+    """The monitored value that gives JointState.effort."""
+
+    signal: str
+    kind: EffortKind
     note: str = ''
 
 
@@ -481,6 +519,9 @@ class Profile:
     control_owned: Mapping[str, str] = field(default_factory=dict)
     # How vfd_scan / vfd_params find and recognise the family (None: not described).
     identify: IdentifySpec | None = None
+    # The joint position (JointState.position, odometry) and effort (None: not measured).
+    position: PositionSpec = PositionSpec()
+    effort: EffortSpec | None = None
     _by_name: Mapping[str, str] = field(default_factory=dict, repr=False)
     _by_address: Mapping[int, str] = field(default_factory=dict, repr=False)
     _by_folded_code: Mapping[str, str] = field(default_factory=dict, repr=False)

@@ -8,6 +8,11 @@ The bus file lists the link (``bus``: transport.* and control_rate) and the driv
 (``drives``: namespace, drive.profile, transport.unit_id and any drive_node
 setting). A per-bus entry on /diagnostics reports transactions/s, errors,
 timeouts and, for RS-485, the share of the wire's capacity in use.
+
+For ros2_control (topic_based_ros2_control), ``joint_commands_topic`` and
+``joint_states_topic`` make the bus take sensor_msgs/JointState velocity
+commands for its drives' joint names and publish their joint states together
+(see joint_topics.py); both are off ('') by default.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from rclpy.parameter import Parameter
 from ..control.bus import Bus, BusStatistics, load_bus_config
 from .drive_node import DriveNode
 from .executable import run_node
+from .joint_topics import JointCommandBridge
 from .messages import bus_diagnostic_name
 
 
@@ -60,6 +66,16 @@ class BusNode(Node):
                 entry.name, controller=self.bus.controllers[entry.key], own_timers=False,
                 namespace=entry.namespace, context=self.context, use_global_arguments=False,
                 parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+        joint_topics = {name: self.declare_parameter(name, default, ParameterDescriptor(
+            description=description, read_only=True)).value for name, default, description in (
+            ('joint_commands_topic', '', 'sensor_msgs/JointState velocity commands in, by '
+             "joint name (topic_based_ros2_control's joint_commands_topic); '' = none"),
+            ('joint_states_topic', '', "the drives' joint states out, together "
+             "(topic_based_ros2_control's joint_states_topic); '' = none"),
+            ('joint_states_rate', 50.0, 'Hz of joint_states_topic'))}
+        self.joints = JointCommandBridge(
+            self, self.drive_nodes, str(joint_topics['joint_commands_topic']),
+            str(joint_topics['joint_states_topic']), float(joint_topics['joint_states_rate']))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # One timer per distinct rate serves every drive (a timer per drive node and
         # rate was a wake-up each, most of a many-drive bus_node's CPU).

@@ -1,9 +1,12 @@
-"""diff_drive: cmd_vel -> two wheel drive nodes, measured wheel speeds -> odom.
+"""diff_drive: cmd_vel -> two wheel drive nodes, wheel positions (or speeds) -> odom.
 
 Topics (relative names resolve in the node's namespace):
-  cmd_vel                  geometry_msgs/Twist     in: m/s (linear.x), rad/s (angular.z)
+  cmd_vel                  geometry_msgs/TwistStamped (use_stamped_vel true, the default, as
+                           Jazzy's diff_drive_controller) or geometry_msgs/Twist (false)
+                                                   in: m/s (linear.x), rad/s (angular.z)
   <left/right>_wheel_command_topic   std_msgs/Float64   out at publish_rate: rad/s at the wheel
   <left/right>_wheel_status_topic    vfd_ros2/DriveStatus  in: measured_velocity, online
+  <left/right>_wheel_joint_states_topic  sensor_msgs/JointState  in: the wheel's position
   odom                     nav_msgs/Odometry       out at publish_rate: header.frame_id =
                                                    odom_frame, child_frame_id = base_frame
   /tf                      tf2_msgs/TFMessage      out with publish_tf (needs tf2_msgs)
@@ -19,10 +22,19 @@ of tripping their own watchdog (which would need nothing to restart, but makes
 each drive report watchdog_tripped). Their watchdogs still stop the wheels if
 this node dies or its link breaks.
 
-Odometry uses the MEASURED wheel speeds (DriveStatus.measured_velocity), never
-the commands. While a wheel's status is older than wheel_status_timeout, offline
-or NaN, the pose is held and the twist is reported as zero with a large
-covariance.
+A stamped command older than cmd_vel_timeout (header.stamp against this node's
+clock) is rejected and counted: it never starts the wheels, so a command queued
+behind a network stall cannot move the robot late. A zero stamp is taken as
+"now", as diff_drive_controller does.
+
+Odometry never uses the commands. With position_feedback (the default, as
+diff_drive_controller) the pose follows the wheels' JointState positions (the
+drive's own counter where the profile has one, else the speed the drive node
+integrates each control cycle) and the twist their measured speeds; while a
+wheel's JointState is missing or stale, the measured speeds
+(DriveStatus.measured_velocity) are integrated instead. While a wheel's status
+is older than wheel_status_timeout, offline or NaN, the pose is held and the
+twist is reported as zero with a large covariance.
 """
 
 from __future__ import annotations
@@ -30,11 +42,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from geometry_msgs.msg import TransformStamped, Twist
+from geometry_msgs.msg import TransformStamped, Twist, TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.time import Time
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from vfd_ros2.msg import DriveStatus
@@ -59,6 +72,14 @@ PARAMETERS: tuple[tuple[str, Any, str], ...] = (
      'vfd_ros2/DriveStatus in: left wheel measured_velocity'),
     ('right_wheel_status_topic', '/agv/right_wheel/drive/status',
      'vfd_ros2/DriveStatus in: right wheel measured_velocity'),
+    ('left_wheel_joint_states_topic', '/agv/left_wheel/joint_states',
+     'sensor_msgs/JointState in: left wheel position (rad), for position_feedback'),
+    ('right_wheel_joint_states_topic', '/agv/right_wheel/joint_states',
+     'sensor_msgs/JointState in: right wheel position (rad), for position_feedback'),
+    ('position_feedback', True, 'odometry from the wheel positions (JointState) while both '
+     'report them; false: always integrate the measured speeds'),
+    ('use_stamped_vel', True, "cmd_vel is geometry_msgs/TwistStamped (as Jazzy's "
+     'diff_drive_controller); false: geometry_msgs/Twist'),
     ('invert_left', False, 'negate the left wheel command and measurement (normally false: '
      'the drive nodes handle mirrored mounting with invert_direction)'),
     ('invert_right', False, 'negate the right wheel command and measurement'),
@@ -69,7 +90,8 @@ PARAMETERS: tuple[tuple[str, Any, str], ...] = (
     ('max_wheel_velocity', 0.0, 'rad/s per wheel, both wheels scaled together (set it to the '
      "drive nodes' max_velocity); 0 = no limit"),
     ('cmd_vel_timeout', 0.5, 's without a valid cmd_vel before the target becomes zero '
-     '(zero wheel commands keep being published)'),
+     '(zero wheel commands keep being published); a stamped cmd_vel older than this is '
+     'rejected'),
     ('wheel_status_timeout', 0.5, 's after the last wheel status before odometry holds'),
     ('publish_rate', 50.0, 'Hz of the wheel commands and odom'),
     ('odom_frame', 'odom', 'header.frame_id of odom (REP 105)'),
@@ -107,6 +129,24 @@ class WheelInput:
         return ''
 
 
+class WheelPosition:
+    """The latest position of one wheel from its JointState, and when it arrived."""
+
+    def __init__(self, sign: float) -> None:
+        self.sign = sign
+        self.position_rad = math.nan
+        self.received: Time | None = None
+
+    def update(self, msg: JointState, now: Time) -> None:
+        if msg.position:
+            self.position_rad = self.sign * float(msg.position[0])
+            self.received = now
+
+    def usable(self, now: Time, timeout_s: float) -> bool:
+        return self.received is not None and math.isfinite(self.position_rad) and \
+            (now - self.received).nanoseconds * 1e-9 <= timeout_s
+
+
 class DiffDriveNode(Node):
     """cmd_vel -> wheel commands (limited), measured wheel speeds -> odometry."""
 
@@ -132,6 +172,13 @@ class DiffDriveNode(Node):
         self.base_frame = str(values['base_frame'])
         self.left = WheelInput('left', bool(values['invert_left']))
         self.right = WheelInput('right', bool(values['invert_right']))
+        self.position_feedback = bool(values['position_feedback'])
+        self.left_position = WheelPosition(self.left.sign)
+        self.right_position = WheelPosition(self.right.sign)
+        self._baseline: tuple[float, float] | None = None   # positions at the last update
+        #: what the pose followed in the last cycle: 'position', 'velocity' or 'hold'
+        self.odometry_source = 'hold'
+        self.stale_commands = 0
 
         self.rejected_commands = 0
         self.target: tuple[float, float] = (0.0, 0.0)
@@ -146,11 +193,19 @@ class DiffDriveNode(Node):
         self._tf_message_type = None
         if values['publish_tf']:
             self._setup_tf()
-        self.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, 10)
+        self.use_stamped_vel = bool(values['use_stamped_vel'])
+        if self.use_stamped_vel:
+            self.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel_stamped, 10)
+        else:
+            self.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, 10)
         self.create_subscription(DriveStatus, values['left_wheel_status_topic'],
                                  lambda msg: self._on_status(self.left, msg), 10)
         self.create_subscription(DriveStatus, values['right_wheel_status_topic'],
                                  lambda msg: self._on_status(self.right, msg), 10)
+        self.create_subscription(JointState, values['left_wheel_joint_states_topic'],
+                                 lambda msg: self._on_joint(self.left_position, msg), 10)
+        self.create_subscription(JointState, values['right_wheel_joint_states_topic'],
+                                 lambda msg: self._on_joint(self.right_position, msg), 10)
         self.create_timer(self.period_s, self._on_tick)
         self.get_logger().info(
             f'diff drive: r={self.kinematics.wheel_radius_m} m, '
@@ -186,6 +241,32 @@ class DiffDriveNode(Node):
             self.last_command = self.get_clock().now()
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'cmd_vel failed: {exc}', throttle_duration_sec=1.0)
+
+    def _on_cmd_vel_stamped(self, msg: TwistStamped) -> None:
+        try:
+            now = self.get_clock().now()
+            stamp = Time.from_msg(msg.header.stamp, clock_type=now.clock_type)
+            if stamp.nanoseconds == 0:
+                self.get_logger().warning('cmd_vel with a zero stamp: taken as now',
+                                          throttle_duration_sec=5.0)
+            else:
+                age = (now - stamp).nanoseconds * 1e-9
+                if age > self.cmd_vel_timeout_s:
+                    self.stale_commands += 1
+                    self.get_logger().warning(
+                        f'rejected cmd_vel stamped {age:.3f} s ago (cmd_vel_timeout '
+                        f'{self.cmd_vel_timeout_s} s); {self.stale_commands} stale so far',
+                        throttle_duration_sec=1.0)
+                    return
+            self._on_cmd_vel(msg.twist)
+        except Exception as exc:  # noqa: BLE001 - never raise into the executor
+            self.get_logger().error(f'cmd_vel failed: {exc}', throttle_duration_sec=1.0)
+
+    def _on_joint(self, wheel: WheelPosition, msg: JointState) -> None:
+        try:
+            wheel.update(msg, self.get_clock().now())
+        except Exception as exc:  # noqa: BLE001
+            self.get_logger().error(f'joint state failed: {exc}', throttle_duration_sec=1.0)
 
     def _on_status(self, wheel: WheelInput, msg: DriveStatus) -> None:
         try:
@@ -233,13 +314,36 @@ class DiffDriveNode(Node):
     def _integrate(self, now: Time, dt: float) -> None:
         problem = self.left.problem(now, self.wheel_status_timeout_s) or \
             self.right.problem(now, self.wheel_status_timeout_s)
+        positions = self._positions(now)
         if problem:
             self.odometry.hold()
+            self.odometry_source = 'hold'
             self.get_logger().warning(f'odometry holds its pose: {problem}',
                                       throttle_duration_sec=2.0)
+        elif positions is not None:
+            if self._baseline is not None:
+                self.odometry.advance(positions[0] - self._baseline[0],
+                                      positions[1] - self._baseline[1],
+                                      self.left.velocity_rad_s, self.right.velocity_rad_s)
+            else:
+                self.odometry.update(self.left.velocity_rad_s, self.right.velocity_rad_s, 0.0)
+            self.odometry_source = 'position'
         else:
             self.odometry.update(self.left.velocity_rad_s, self.right.velocity_rad_s, dt)
+            self.odometry_source = 'velocity'
+        # Position increments count from the last cycle that used them: after a gap
+        # (held, or integrated speeds) the next one starts from the positions then.
+        self._baseline = positions if not problem else None
         self._publish_odometry(now)
+
+    def _positions(self, now: Time) -> tuple[float, float] | None:
+        """Both wheels' positions (rad) when position feedback is on and both are fresh."""
+        if not self.position_feedback:
+            return None
+        wheels = (self.left_position, self.right_position)
+        if not all(w.usable(now, self.wheel_status_timeout_s) for w in wheels):
+            return None
+        return self.left_position.position_rad, self.right_position.position_rad
 
     def _publish_odometry(self, now: Time) -> None:
         estimate = self.odometry.estimate

@@ -6,6 +6,9 @@ Topics (relative to the node, e.g. /agv/left_wheel/drive/...):
                                               ~/pressure_setpoint), engineering units
   ~/status            vfd_ros2/DriveStatus    out: at status_rate
   ~/fault             vfd_ros2/DriveFault     out: on change, transient local
+  joint_states        sensor_msgs/JointState  out: at status_rate, one joint named by
+                                              joint_name: position rad, velocity rad/s,
+                                              effort N·m (empty where not measured)
   /diagnostics        diagnostic_msgs/DiagnosticArray
 Services:
   ~/get_drive_parameter, ~/set_drive_parameter   vfd_ros2/srv/...
@@ -28,6 +31,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
@@ -44,7 +48,14 @@ from ..profiles import NO_FAULT
 from ..transports import load_transport_class
 from .deferred_service import Deferred, create_deferred_service
 from .executable import run_node
-from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
+from .messages import (
+    default_joint_name,
+    diagnostic_status,
+    drive_diagnostic_name,
+    fault_message,
+    joint_state_message,
+    status_message,
+)
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -86,6 +97,9 @@ class DriveNode(Node):
 
         self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
         self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
+        self.joint_name = str(values['joint_name']) or \
+            default_joint_name(self.get_namespace(), self.get_name())
+        self.joint_pub = self.create_publisher(JointState, 'joint_states', 10)
         self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
         for topic in self.controller.drive.profile.setpoints:
             self.create_subscription(Float64, f'~/{topic}',
@@ -145,6 +159,7 @@ class DriveNode(Node):
             stamp = self.get_clock().now().to_msg()
             self.status_pub.publish(status_message(state, stamp, self.frame_id,
                                                    self.profile_name))
+            self.joint_pub.publish(joint_state_message([(self.joint_name, state)], stamp))
             fault = state.active_fault
             if not self._fault_published or (fault.code, fault.subcode) != \
                     (self._last_fault.code, self._last_fault.subcode):

@@ -6,11 +6,37 @@ import math
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from sensor_msgs.msg import JointState
 
 from vfd_ros2.msg import DriveFault, DriveStatus
 
 from ..control.state import DriveState
 from ..profiles import FaultInfo
+
+
+def joint_state_message(joints: list[tuple[str, DriveState]], stamp: Time) -> JointState:
+    """One JointState for wheels (name, state): rad, rad/s and N·m at the output shaft.
+
+    ``effort`` is filled only when every wheel measures one (JointState allows an
+    empty array, not a partial one); NaN marks a value not known (offline, or no
+    position yet).
+    """
+    msg = JointState()
+    msg.header.stamp = stamp
+    msg.name = [name for name, _ in joints]
+    msg.position = [float(state.position) for _, state in joints]
+    msg.velocity = [float(state.measured_velocity) if state.online else math.nan
+                    for _, state in joints]
+    efforts = [float(state.effort) for _, state in joints]
+    if efforts and not any(math.isnan(value) for value in efforts):
+        msg.effort = efforts
+    return msg
+
+
+def default_joint_name(namespace: str, node_name: str) -> str:
+    """Return the namespace's last part (/agv/left_wheel -> left_wheel), else the node name."""
+    parts = [part for part in namespace.split('/') if part]
+    return parts[-1] if parts else node_name
 
 
 def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) -> DriveStatus:
@@ -126,6 +152,9 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         ('running', state.running),
         ('commanded velocity (rad/s)', f'{state.commanded_velocity:.4f}'),
         ('measured velocity (rad/s)', f'{state.measured_velocity:.4f}'),
+        ('position (rad)', f'{state.position:.4f}'),
+        ('position source', "the drive's counter" if state.position_source == 'drive'
+         else 'measured speed integrated'),
         ('output frequency (Hz)', state.measured.get('output_frequency', math.nan)),
         ('output current (A)', state.measured.get('output_current', math.nan)),
         ('DC bus voltage (V)', state.measured.get('dc_bus_voltage', math.nan)),

@@ -27,6 +27,7 @@ Several drives share one ``SimulatedCanBus``; one thread ticks them in turn.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Any, Callable
@@ -99,6 +100,8 @@ class SimulatedCanopenDrive:
         self.controlword = 0
         self.target_raw = 0
         self.speed_rpm = 0.0
+        #: motor revolutions turned since start (the position counter's source)
+        self.motor_revolutions = 0.0
         self.run_requested = False          # command_word style
         self.fault_code = 0
         self.last_error = 0                 # the fault before the last reset
@@ -217,12 +220,22 @@ class SimulatedCanopenDrive:
                 return round((2.0 + 8.0 * load if self.speed_rpm else 0.0) / obj.scale)
             if role == 'dc_bus_voltage':
                 return round(48.0 / obj.scale)
+            if role == 'position' and self.profile.position.from_drive:
+                raw = self.position_count % (1 << obj.type.bits)     # the counter rolls over
+                signed = obj.type.bounds[0] < 0 and raw >= 1 << (obj.type.bits - 1)
+                return raw - (1 << obj.type.bits) if signed else raw
             return 0
         if self.objects.mode_of_operation is not None and \
                 key == (self.objects.mode_of_operation.index + 1, 0):
             mode = self.objects.mode_of_operation
             return self._stored(mode.index, mode.subindex)   # 0x6061 follows 0x6060
         return None
+
+    @property
+    def position_count(self) -> int:
+        """The motor position counter as the drive counts it (before its roll-over)."""
+        with self.lock:
+            return math.floor(self.motor_revolutions * self.profile.position.counts_per_rev)
 
     def error_code(self) -> int:
         """Return the error code object's value (0x603F or the profile's fault code)."""
@@ -383,8 +396,10 @@ class SimulatedCanopenDrive:
                     target * self.speed_rpm >= 0 else decel
             step = rate * dt
             delta = target - self.speed_rpm
+            previous = self.speed_rpm
             self.speed_rpm = target if abs(delta) <= step else self.speed_rpm + (
                 step if delta > 0 else -step)
+            self.motor_revolutions += 0.5 * (previous + self.speed_rpm) / 60.0 * dt
             if self.state is State.QUICK_STOP_ACTIVE and self.speed_rpm == 0.0:
                 self.state = State.SWITCH_ON_DISABLED
             if not self.silent and self.network is not None:

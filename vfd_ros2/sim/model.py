@@ -9,8 +9,9 @@ What it models, all from the profile data:
   fault reset that only clears a fault whose cause is gone);
 - bus control only once the commissioning parameters are set;
 - a speed ramp with the drive's acceleration / deceleration times;
-- measured values (speed, frequency, current, bus voltage, temperature) and
-  the status flags the driver decodes;
+- measured values (speed, frequency, current, bus voltage, temperature, the
+  motor position counter where the profile has one) and the status flags the
+  driver decodes;
 - the drive's own comm-loss timeout raising the manual's fault.
 """
 
@@ -36,7 +37,7 @@ from ..protocol.registers import decode_words, encode_words
 #: roles whose values come from the physics, not from inverting a flag rule
 PHYSICAL_ROLES = frozenset({
     'motor_speed', 'output_frequency', 'output_current', 'dc_bus_voltage', 'temperature',
-    'fault_code', 'fault_subcode', 'warning_code', 'warning_subcode'})
+    'fault_code', 'fault_subcode', 'warning_code', 'warning_subcode', 'position'})
 
 #: Modbus specification codes used where a profile does not say otherwise
 STANDARD_EXCEPTION_FOR = {
@@ -73,6 +74,8 @@ class SimulatedDrive:
             parameter = profile.parameter(code)
             self._store(parameter, parameter.to_raw(value))
         self.speed_rpm = 0.0
+        #: motor revolutions turned since start (the position counter's source)
+        self.motor_revolutions = 0.0
         self.output_active = False   # output stage on (running or ramping down)
         self.run_requested = False
         self.reverse_requested = False
@@ -306,8 +309,10 @@ class SimulatedDrive:
             ramp_time = accel if speeding_up else decel
             step = rated_rpm * dt / ramp_time if ramp_time > 0 else math.inf
             delta = target - self.speed_rpm
+            previous = self.speed_rpm
             self.speed_rpm = target if abs(delta) <= step else self.speed_rpm + math.copysign(
                 step, delta)
+            self.motor_revolutions += 0.5 * (previous + self.speed_rpm) / 60.0 * dt
             if running:
                 self.output_active = True
             elif self.speed_rpm == 0.0:
@@ -345,6 +350,25 @@ class SimulatedDrive:
         type_low, type_high = parameter.type.bounds
         self._store(parameter, min(max(raw, type_low), type_high))
 
+    @property
+    def position_count(self) -> int:
+        """The motor position counter as the drive counts it (before its roll-over)."""
+        with self.lock:
+            return math.floor(self.motor_revolutions * self.profile.position.counts_per_rev)
+
+    def _set_counter(self) -> None:
+        spec = self.profile.position
+        signal = self.profile.signal(spec.signal) if spec.from_drive else None
+        if signal is None:
+            return
+        parameter = self.profile.parameter(signal.code)
+        bits = parameter.type.bits
+        raw = self.position_count % (1 << bits)        # the counter rolls over
+        low, _high = parameter.type.bounds
+        if low < 0 and raw >= 1 << (bits - 1):
+            raw -= 1 << bits
+        self._store(parameter, raw)
+
     def _refresh_monitor(self, target: float = 0.0, rated_rpm: float = 1500.0,
                          pole_pairs: float = 2.0) -> None:
         feedback = self.profile.velocity.feedback_unit
@@ -365,6 +389,7 @@ class SimulatedDrive:
         self._set_role('fault_code', self.fault_code)
         self._set_role('fault_subcode', self.fault_subcode)
         self._set_role('warning_code', self.warning_code)
+        self._set_counter()
         wanted = {
             'ready': not self.fault_code,
             'run_requested': self.run_requested and not self.fault_code,
