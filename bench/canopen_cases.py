@@ -24,7 +24,7 @@ import can
 import rclpy
 import yaml
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import Executor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
@@ -32,6 +32,7 @@ from std_msgs.msg import Float64
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.bus_node import BusNode
 from vfd_ros2.ros.drive_node import DriveNode
+from vfd_ros2.ros.executable import make_executor
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from vfd_ros2.transports.canopen import open_channels
 
@@ -94,7 +95,7 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
         tester = Node('bench_can', namespace=f'/{tag}', context=context)
         publishers = [tester.create_publisher(Float64, f'd{n}/drive/velocity_command', 10)
                       for n in range(1, units + 1)]
-        executor = SingleThreadedExecutor(context=context)
+        executor = make_executor(context)
         for node in [*nodes, *getattr(nodes[0], 'drive_nodes', []), tester]:
             executor.add_node(node)
         spin = threading.Thread(target=lambda: _spin(executor, context), daemon=True)
@@ -193,7 +194,7 @@ def _frame_bits(data_bytes: int) -> int:
     return 44 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4 + 3     # + interframe space
 
 
-def _spin(executor: SingleThreadedExecutor, context: Context) -> None:
+def _spin(executor: Executor, context: Context) -> None:
     while context.ok():
         try:
             executor.spin_once(timeout_sec=0.05)

@@ -23,7 +23,6 @@ from typing import Any, Callable
 import rclpy
 import yaml
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
@@ -34,7 +33,7 @@ from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
 from vfd_ros2.ros.drive_node import DriveNode
-from vfd_ros2.ros.executable import spin_in_background
+from vfd_ros2.ros.executable import make_executor, spin_in_background
 from vfd_ros2.transports.modbus import ModbusRtuTransport, PymodbusRtuTransport
 
 from .simproc import SimProcess, wait_port
@@ -150,7 +149,7 @@ class NodeBus:
         self.tester = Node('bench_tester', namespace=f'/{self.tag}', context=self.context)
         self.publishers = [self.tester.create_publisher(Float64, f'd{u}/drive/velocity_command',
                                                         10) for u in range(1, units + 1)]
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = make_executor(self.context)
         for node in [*self.nodes, self.tester]:
             self.executor.add_node(node)
         self._spin = spin_in_background(self.executor, self.context)
@@ -578,7 +577,7 @@ class BusNodeProcess:
                                           lambda msg, u=u: self.last.__setitem__(u, msg), 10)
         self.node.create_timer(1.0 / command_rate, lambda: [p.publish(Float64(data=1.0))
                                                             for p in publishers])
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = make_executor(self.context)
         self.executor.add_node(self.node)
 
     def spin_for(self, seconds: float) -> None:

@@ -36,6 +36,7 @@ if str(HERE.parent) not in sys.path:
 from bench import cases  # noqa: E402
 from bench.cases import Framing  # noqa: E402
 from bench.report import render_markdown, render_table  # noqa: E402
+from vfd_ros2.ros.executable import GIL_SWITCH_INTERVAL  # noqa: E402
 
 BAUDS = (9600, 19200, 38400, 115200)
 
@@ -146,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
             Path(args.markdown).write_text(render_markdown(results, table))
         return 0
     only = {s for s in args.only.split(',') if s}
+    # Cases that run drive nodes in this process get the GIL hand-over the
+    # executables use (vfd_ros2.ros.executable.run_node).
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     started = time.monotonic()
     results: dict[str, Any] = {
         'meta': {'date': datetime.datetime.now(datetime.timezone.utc).isoformat(

@@ -66,6 +66,10 @@ class ModbusDrive:
         self._command = profile.parameter(profile.control.command)
         self._signals: list[tuple[Signal, Parameter]] = [
             (signal, profile.parameter(signal.code)) for signal in profile.monitor]
+        self._signal_spans = [
+            (signal, parameter, tuple(range(parameter.address,
+                                            parameter.address + parameter.register_count)))
+            for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
         self._plan_reads()
@@ -344,13 +348,14 @@ class ModbusDrive:
                 for offset, word in enumerate(words):
                     self._words[block.start + offset] = word
         reading = Reading()
-        for signal, parameter in self._signals:
-            span = range(parameter.address, parameter.address + parameter.register_count)
-            refused = next((self._refused[a] for a in span if a in self._refused), None)
-            if refused is not None:
-                reading.unavailable[signal.role] = f'{parameter.code}: {refused}'
-                continue
-            words = [self._words.get(address) for address in span]
+        known, refusals = self._words, self._refused
+        for signal, parameter, span in self._signal_spans:   # every cycle: kept lean
+            if refusals:
+                refused = next((refusals[a] for a in span if a in refusals), None)
+                if refused is not None:
+                    reading.unavailable[signal.role] = f'{parameter.code}: {refused}'
+                    continue
+            words = [known.get(address) for address in span]
             if None in words:
                 continue
             raw = signal.extract(decode_words(parameter, words))
