@@ -566,6 +566,7 @@ class BusNodeProcess:
              '--log-level', 'warn'], stdout=subprocess.DEVNULL, stderr=self._log, env=env,
             cwd=self._tmp.name)
         self.units = units
+        self.all_online_s: float | None = None
         self.context = Context()
         rclpy.init(context=self.context)
         self.node = Node('bench_bus_node', namespace=f'/{tag}', context=self.context)
@@ -588,22 +589,27 @@ class BusNodeProcess:
     def wait_all_running(self, timeout: float) -> float:
         """Return the seconds from launch until every drive reports online and running.
 
-        ``all_online_s`` keeps when the last drive came online (before its ramp).
+        ``all_online_s`` keeps when the last drive was first seen online (before its
+        ramp).
         """
         deadline = time.monotonic() + timeout
-        self.all_online_s: float | None = None
-        while not (len(self.last) == self.units and all(s.online and s.running
-                                                        for s in self.last.values())):
-            if self.all_online_s is None and len(self.last) == self.units and \
-                    all(s.online for s in self.last.values()):
-                self.all_online_s = time.monotonic() - self.launched
+        first_online: dict[int, float] = {}
+        while True:
+            now = time.monotonic() - self.launched
+            for unit, status in self.last.items():
+                if status.online:
+                    first_online.setdefault(unit, now)
+            if len(first_online) == self.units:
+                self.all_online_s = max(first_online.values())
+            if len(self.last) == self.units and all(s.online and s.running
+                                                    for s in self.last.values()):
+                return now
             if time.monotonic() > deadline or self.child.poll() is not None:
                 self._log.seek(0)
                 states = {u: (s.online, s.state) for u, s in self.last.items()}
                 raise RuntimeError(f'bus_node did not bring the drives online: {states} '
                                    + self._log.read().decode(errors='replace')[-800:])
             self.spin_for(0.05)
-        return time.monotonic() - self.launched
 
     def transactions(self) -> int:
         # Each drive's status carries its own counters (Transport.stats_for): the

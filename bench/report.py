@@ -247,22 +247,37 @@ BOUNDS = """### Targets and what bounds them
   need a drive that accepts a new request before the reply to the previous one (not
   Modbus RTU), or shorter status reads (fewer registers per read lowers the in-flight
   wait: profile `every:` / `max_read_registers`). TCP has no such serialisation.
-- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — a few missed.** Each
-  drive runs its own Python `CycleLoop` thread; on 2 cores shared with the rclpy executor
-  and the simulated drives' thread an occasional wake-up is late by more than one 4 ms
-  period, and the loop then restarts its schedule instead of bursting (a missed cycle).
-  What would move it: one bus thread for all CANopen drives on a channel (as `Bus` does for
-  RTU) sending every RPDO in one burst after SYNC, a real-time priority
-  (`os.sched_setscheduler(SCHED_FIFO)`) for that thread on the robot, and fewer
-  executor wake-ups (below).
-- **CPU (≤ 5 % of one core per drive at 50 Hz) — close, not met.** Thread split: Fast DDS
-  threads < 1 %, the rest is Python. py-spy (`--gil`) of the bus_node process:
-  ~30-40 % of GIL time in rclpy's `Executor._wait_for_ready_callbacks` (the
-  SingleThreadedExecutor rebuilds its wait set on every wake-up: each drive node has a
-  velocity subscription at 50 Hz, two timers, ten services), ~8 % `Publisher.publish`;
-  the driver's own code is a few % (`ModbusDrive.poll` 4 %, `RtuLink` 3 %; software floor:
-  ~30 µs of CPU per RTU transaction, ~0.8 % of a core per drive at 50 Hz). What would move
-  it (node.py / bus_node.py): rclpy's `EventsExecutor` (`rclpy.experimental`), one
-  bus-level timer publishing every drive's status instead of one timer per node, and
-  `start_parameter_services=False` on the per-drive nodes of a bus.
+- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s).** The table puts the
+  previous design (a `drive_node` per drive, each with its own loop thread) next to what
+  ships: one `bus_node` thread per CAN channel that writes every drive's RPDOs in one burst
+  and then one SYNC (`transport.sync_producer`) where the drives take synchronous PDOs
+  (`cia402_velocity`: transmission type 1; the Kinco stays event-driven), with and
+  without `realtime_priority` (SCHED_FIFO for that thread). What bounds 8 drives at
+  500 Hz here: python-can's virtual bus is in-process, so the driver and the eight
+  simulated drives share one interpreter and its GIL on 2 cores; and on a real 1 Mbit/s
+  bus, 8 drives x 3 frames x 500 Hz plus SYNC exceed the bus's capacity (`load % 1M`).
+- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one).**
+  The executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
+  previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
+  rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
+  bus_node). The wheel's events executor does not await coroutine callbacks
+  (ros2/rclpy#1473), so the drive services are answered from the control thread
+  (`ros/deferred_service.py`), and a bus publishes every drive's status and diagnostics
+  from one timer per rate. What is left is the control thread: ~100 µs of Python per
+  Modbus transaction on a pty (pymodbus' PDU and framer, the reply checks, the
+  syscalls) x ~5.4 transactions per drive-cycle x 50 Hz, ~2.5-3 % of a core per drive
+  before any ROS work; the 4-drive figure lands close to the target, the single drive
+  above its. What would move it further: fewer transactions per cycle (the profile's
+  `every:` for slow values), not a faster executor.
+- **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
+  core).** Before this change one bus_node was CPU-bound at 101 % with 0.4 cycles/s per
+  drive. Four things held it back, each fixed: the executor's wait set (above); the
+  GIL hand-over — a control thread woken by a reply waited up to Python's 5 ms switch
+  interval while the executor ran callbacks (the executables now set 0.5 ms); checks
+  before every status read that scanned every drive (now nothing runs unless a command
+  waits or a watchdog may be due); and in the bench itself, the simulated line advanced
+  all 32 drive models after every frame, which held replies back by milliseconds.
+  Start-up to all online is bounded by design: a bus connects one offline drive per
+  cycle, so every online drive stays addressed well within its comm-loss timeout
+  (issue 9), and a cycle of n online drives takes n x ~30 ms at 115200.
 """
