@@ -186,10 +186,10 @@ class NodeBus:
 
     def close(self) -> None:
         self.bus.shutdown()
-        for node in [*self.nodes, self.tester]:
-            self.executor.remove_node(node)
-            node.destroy_node()
+        self._spin.stop()
         self.executor.shutdown(timeout_sec=1.0)
+        for node in [*self.nodes, self.tester]:
+            node.destroy_node()
         rclpy.try_shutdown(context=self.context)
 
 

@@ -69,10 +69,11 @@ class CanHarness:
     def close(self) -> None:
         for wheel in self.wheels.values():
             wheel.stop_stream()
-            self.executor.remove_node(wheel.node)
+        self._spin.stop()
+        self.executor.shutdown(timeout_sec=1.0)
+        for wheel in self.wheels.values():
             wheel.node.destroy_node()
         self.tester.destroy_node()
-        self.executor.shutdown(timeout_sec=1.0)
         self.bus.stop()
 
 

@@ -163,12 +163,12 @@ class DriveHarness(DriveClient):
 
     def close(self) -> None:
         self.stop_stream()
-        self.executor.remove_node(self.node)
+        self._spin.stop()
+        self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         # Every test doubles as a bug catcher: nothing may raise inside the drive loop.
         assert self.node.controller.loop_errors == 0, 'exceptions inside the drive loop'
         self.tester.destroy_node()
-        self.executor.shutdown(timeout_sec=1.0)
         self.line.stop()
 
 

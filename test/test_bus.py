@@ -64,7 +64,7 @@ def agv_bus(ros_context, tmp_path):
     executor = make_executor(ros_context)
     for node in (bus, *bus.drive_nodes, tester):
         executor.add_node(node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     commands = {wheel: 0.0 for wheel in WHEELS}
     streaming = threading.Event()
     streaming.set()
@@ -80,6 +80,8 @@ def agv_bus(ros_context, tmp_path):
                           commands=commands, diagnostics=diagnostics)
     yield state
     streaming.clear()
+    spin.stop()
+    executor.shutdown(timeout_sec=1.0)
     bus.destroy_node()
     tester.destroy_node()
     line.stop()
@@ -276,7 +278,7 @@ def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_
     executor = make_executor(ros_context)
     for node in (bus, *bus.drive_nodes):
         executor.add_node(node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     controllers = bus.bus.controllers
     try:
         wait_for(lambda: all(c.state.online for c in controllers.values()), 10.0, 'all online')
@@ -299,8 +301,9 @@ def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_
         assert sum(s.transactions for s in states.values()) <= \
             bus.bus.link_stats().transactions
     finally:
-        bus.destroy_node()
+        spin.stop()
         executor.shutdown(timeout_sec=1.0)
+        bus.destroy_node()
         line.stop()
     assert not [c for c in open_channels() if c.key[1] == channel]     # closed with the bus
 

@@ -41,7 +41,7 @@ def test_an_answer_from_another_thread_reaches_the_caller(ros_context, monkeypat
     client = client_node.create_client(Trigger, name)
     executor.add_node(server)
     executor.add_node(client_node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     try:
         assert client.wait_for_service(5.0)
         answers = []
@@ -54,6 +54,7 @@ def test_an_answer_from_another_thread_reaches_the_caller(ros_context, monkeypat
             answers.append(future.result().message)
         assert answers == ['now', 'later 2', 'later 3']
     finally:
+        spin.stop()
         executor.shutdown(timeout_sec=1.0)
         server.destroy_node()
         client_node.destroy_node()

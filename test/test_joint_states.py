@@ -231,7 +231,7 @@ def joint_bus(ros_context, tmp_path):
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (bus, *bus.drive_nodes, tester):
         executor.add_node(node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     command = {'message': None}
     streaming = threading.Event()
 
@@ -250,6 +250,8 @@ def joint_bus(ros_context, tmp_path):
     wait_for(lambda: all(s.online for s in bench.statuses().values()), 10.0, 'drives online')
     yield bench
     streaming.clear()
+    spin.stop()
+    executor.shutdown(timeout_sec=1.0)
     bus.destroy_node()
     tester.destroy_node()
     line.stop()

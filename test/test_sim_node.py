@@ -28,12 +28,12 @@ def sim_node(ros_context, tmp_path):
         executor = SingleThreadedExecutor(context=ros_context)
         executor.add_node(node)
         executor.add_node(client)
-        spin_in_background(executor, ros_context)
-        created.append((node, client, executor))
+        created.append((node, client, executor, spin_in_background(executor, ros_context)))
         return node, client
     yield make
-    for node, client, executor in created:
-        executor.remove_node(node)
+    for node, client, executor, spin in created:
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         client.destroy_node()
 

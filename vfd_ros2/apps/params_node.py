@@ -124,11 +124,11 @@ class NodeAccess:
     def close(self) -> None:
         executor = getattr(self, 'executor', None)
         node = getattr(self, 'node', None)
+        spin = getattr(self, '_spin', None)
+        if spin is not None:
+            spin.stop()
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown(context=self.context)
-        if executor is not None:
-            executor.shutdown(timeout_sec=1.0)
-        spin = getattr(self, '_spin', None)
-        if spin is not None:
-            spin.join(2.0)

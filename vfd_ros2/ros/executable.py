@@ -83,16 +83,36 @@ def spin_until_shutdown(executor: Executor, context: Context) -> None:
         executor.spin_once(timeout_sec=0.1)
 
 
-def spin_in_background(executor: Executor, context: Context) -> threading.Thread:
-    """Spin ``executor`` in a daemon thread until ``context`` shuts down (tests, tools)."""
-    def spin() -> None:
-        while context.ok():
+class BackgroundSpin(threading.Thread):
+    """A thread spinning an executor until its context shuts down or ``stop()``."""
+
+    def __init__(self, executor: Executor, context: Context) -> None:
+        super().__init__(name='rclpy spin', daemon=True)
+        self._executor, self._context = executor, context
+        self._stopped = threading.Event()
+
+    def run(self) -> None:
+        while self._context.ok() and not self._stopped.is_set():
             try:
-                executor.spin_once(timeout_sec=0.05)
+                self._executor.spin_once(timeout_sec=0.05)
             except Exception:  # noqa: BLE001 - the context shut down under us
-                if not context.ok():
+                if not self._context.ok() or self._stopped.is_set():
                     return
                 raise
-    thread = threading.Thread(target=spin, name='rclpy spin', daemon=True)
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop spinning and wait: then nodes can leave the executor and be destroyed."""
+        self._stopped.set()
+        if self.is_alive() and self is not threading.current_thread():
+            self.join(timeout)
+
+
+def spin_in_background(executor: Executor, context: Context) -> BackgroundSpin:
+    """Spin ``executor`` in a daemon thread until ``context`` shuts down (tests, tools).
+
+    Call ``stop()`` before destroying the executor's nodes: an executor must not
+    be waiting on entities that are being destroyed.
+    """
+    thread = BackgroundSpin(executor, context)
     thread.start()
     return thread
