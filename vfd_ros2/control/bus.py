@@ -10,9 +10,10 @@ the others; it alone goes offline.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping
 
 import yaml
@@ -149,6 +150,31 @@ class Bus:
             extra = max(max(d.connect_seconds() for d in drives),
                         max(t.failed_exchange_seconds() for t in self.transports))
         return max(self.period, cycle) + extra + max(d.action_seconds() for d in drives)
+
+    def set_rate(self, rate: float) -> None:
+        """Change the bus thread's cycle rate (Hz) at once; ParameterError why not.
+
+        Every drive's controller gets the new period too (what it reports and
+        sizes with); refused, changing nothing, when a drive's comm-loss timeout
+        written at connect would not fit the new addressing interval.
+        """
+        if not (math.isfinite(rate) and rate > 0):
+            raise ParameterError(f'control_rate must be a finite number > 0, got {rate}')
+        period = 1.0 / rate
+        previous = self.period
+        self.period = period
+        try:
+            interval = self._addressing_interval()
+            for controller in self.controllers.values():
+                controller.check_cycle_period(period, interval)
+        except Exception:
+            self.period = previous
+            raise
+        self.addressing_interval = interval
+        for controller in self.controllers.values():
+            controller.config = replace(controller.config, cycle_period=period)
+        if self._loop is not None:
+            self._loop.set_period(period)
 
     def step(self) -> None:
         controllers = list(self.controllers.values())

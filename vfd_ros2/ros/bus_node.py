@@ -19,10 +19,12 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ..control.bus import Bus, BusStatistics, load_bus_config
+from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
+from ..control.settings import SETTINGS
 from .drive_node import DriveNode
 from .executable import run_node
 from .messages import bus_diagnostic_name
+from .parameters import LiveParameters, check_value, descriptor
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
@@ -48,14 +50,32 @@ class BusNode(Node):
     def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         path = self.declare_parameter('config_file', '', ParameterDescriptor(
-            description='bus YAML: the link and its drives')).value
+            description='bus YAML: the link and its drives', read_only=True)).value
         self.config = load_bus_config(path)
         self.bus = Bus(self.config)
+        # The bus thread's rate is the bus node's (live); the drives' nodes show it read-only.
+        rates = {s.name: s for s in SETTINGS if s.name in BUS_KEYS}
+        rate = rates['control_rate']
+        configured = float(self.config.settings.get('control_rate', rate.default))
+        value = self.declare_parameter('control_rate', configured, descriptor(
+            rate.description, rate.default, rate.minimum, rate.maximum, live=True)).value
+        check_value('control_rate', value, rate.minimum, rate.maximum)
+        if value != configured:
+            self.bus.set_rate(float(value))
+        priority = rates['realtime_priority']
+        self.declare_parameter(
+            'realtime_priority', int(self.config.settings.get('realtime_priority', 0)),
+            descriptor(priority.description + ' (set it in the bus file)', priority.default,
+                       priority.minimum, priority.maximum))
+        self.live_parameters = LiveParameters(
+            self, {'control_rate'}, self._apply_parameters,
+            {'control_rate': (rate.minimum, rate.maximum)})
         self.drive_nodes: list[DriveNode] = []
         for entry in self.config.drives:
             values = {**self.config.settings, **entry.settings}
             # use_global_arguments=False: a launch file's __ns/__node remaps are meant
             # for the bus node, not for the drives' own namespaces from the bus file.
+            values['control_rate'] = 1.0 / self.bus.period
             self.drive_nodes.append(DriveNode(
                 entry.name, controller=self.bus.controllers[entry.key],
                 namespace=entry.namespace, context=self.context, use_global_arguments=False,
@@ -65,6 +85,13 @@ class BusNode(Node):
         self.bus.start()
         self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
                                f'{self.bus.transport.description}')
+
+    def _apply_parameters(self, changes: dict[str, Any]) -> None:
+        rate = float(changes['control_rate'])
+        self.bus.set_rate(rate)
+        # What each drive's node shows follows the bus (read-only there: set internally).
+        for node in self.drive_nodes:
+            node.show_bus_rate(rate)
 
     def _publish_diagnostics(self) -> None:
         try:

@@ -24,8 +24,8 @@ import math
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from std_msgs.msg import Float64
@@ -34,6 +34,7 @@ from std_srvs.srv import Trigger
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
+from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
 from ..control.settings import SETTINGS
@@ -44,6 +45,7 @@ from ..profiles import NO_FAULT
 from ..transports import load_transport_class
 from .executable import run_node
 from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
+from .parameters import LiveParameters, check_value, descriptor
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -62,7 +64,14 @@ class DriveNode(Node):
                  **kwargs: Any) -> None:
         """Make a drive node; with ``controller`` given, a bus runs that controller's loop."""
         super().__init__(node_name, **kwargs)
-        values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
+        # Live: validated and applied at once. A bus's rate and priority belong to the
+        # bus node (read-only here); auto_enable acts only at start-up on a plain node.
+        fixed_here = {'auto_enable'} | (set(BUS_KEYS) if controller is not None else set())
+        live = {s.name for s in SETTINGS if s.live and s.name not in fixed_here}
+        values = {s.name: self._declare(s.name, s.default, s.description, s.minimum,
+                                        s.maximum, s.name in live) for s in SETTINGS}
+        for setting in SETTINGS:
+            check_value(setting.name, values[setting.name], setting.minimum, setting.maximum)
         transport_class = load_transport_class(str(values['transport.type']))
         for prefix, settings in (('transport', transport_class.parameters),
                                  ('drive', drive_class_for(transport_class).settings)):
@@ -91,16 +100,44 @@ class DriveNode(Node):
         for action in ('enable', 'disable', 'stop', 'reset_fault'):
             self.create_service(Trigger, f'~/{action}', self._trigger_handler(action),
                                 qos_profile=SERVICE_QOS)
-        self.create_timer(1.0 / float(values['status_rate']), self._publish_status)
-        self.create_timer(1.0 / float(values['diagnostics_rate']), self._publish_diagnostics)
+        self._rate_timers = {
+            'status_rate': self.create_timer(1.0 / float(values['status_rate']),
+                                             self._publish_status),
+            'diagnostics_rate': self.create_timer(1.0 / float(values['diagnostics_rate']),
+                                                  self._publish_diagnostics)}
+        self.live_parameters = LiveParameters(
+            self, live, self._apply_parameters,
+            {s.name: (s.minimum, s.maximum) for s in SETTINGS})
         if self._owns_controller:
             self.controller.start()
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
 
-    def _declare(self, name: str, default: Any, description: str) -> Any:
+    def _declare(self, name: str, default: Any, description: str,
+                 minimum: float | None = None, maximum: float | None = None,
+                 live: bool = False) -> Any:
         return self.declare_parameter(
-            name, default, ParameterDescriptor(description=description)).value
+            name, default, descriptor(description, default, minimum, maximum, live)).value
+
+    def show_bus_rate(self, rate: float) -> None:
+        """Show the bus thread's new rate in this drive's read-only ``control_rate``."""
+        self._parameters['control_rate'] = Parameter('control_rate', value=float(rate))
+
+    def _apply_parameters(self, changes: dict[str, Any]) -> None:
+        """Apply live parameters at once (all validated first; raises, changing nothing)."""
+        config: dict[str, Any] = {}
+        for name, value in changes.items():
+            if name == 'control_rate':
+                config['cycle_period'] = 1.0 / float(value)
+            elif name == 'auto_enable':
+                config['auto_enable'] = bool(value)
+            elif name in ('max_velocity', 'command_timeout', 'action_timeout', 'stop_timeout'):
+                config[name] = float(value)
+        if config:
+            self.controller.reconfigure(**config)
+        for name in ('status_rate', 'diagnostics_rate'):
+            if name in changes:
+                self._rate_timers[name].timer_period_ns = round(1e9 / float(changes[name]))
 
     # --- topics -----------------------------------------------------------------
 
