@@ -13,6 +13,10 @@ from __future__ import annotations
 import logging
 from typing import Any, Mapping
 
+from . import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
