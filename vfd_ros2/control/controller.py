@@ -401,6 +401,8 @@ class DriveController:
         self.drive.close()
         self.link.closed()
         self._actions.fail_all('the driver is shutting down')
+        self._reading = Reading()
+        self._publish_state()        # the status says offline, not the last cycle's state
 
     # --- internals -----------------------------------------------------------------
 

@@ -16,13 +16,15 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
 from ..control.settings import SETTINGS
-from .drive_node import DriveNode
+from .drive_node import DriveNode, autostart
 from .executable import run_node
+from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import bus_diagnostic_name
 from .parameters import LiveParameters, check_value, descriptor
 
@@ -47,7 +49,8 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
 
 
 class BusNode(Node):
-    def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
+    def __init__(self, node_name: str = 'bus', managed: bool = False, **kwargs: Any) -> None:
+        """Serve one link and a drive node per drive; ``managed``: see ``ManagedBusNode``."""
         super().__init__(node_name, **kwargs)
         path = self.declare_parameter('config_file', '', ParameterDescriptor(
             description='bus YAML: the link and its drives', read_only=True)).value
@@ -77,12 +80,13 @@ class BusNode(Node):
             # for the bus node, not for the drives' own namespaces from the bus file.
             values['control_rate'] = 1.0 / self.bus.period
             self.drive_nodes.append(DriveNode(
-                entry.name, controller=self.bus.controllers[entry.key],
+                entry.name, controller=self.bus.controllers[entry.key], managed=managed,
                 namespace=entry.namespace, context=self.context, use_global_arguments=False,
                 parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.bus.start()
+        if not managed:
+            self.bus.start()
         self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
                                f'{self.bus.transport.description}')
 
@@ -113,6 +117,38 @@ class BusNode(Node):
         super().destroy_node()
 
 
+class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
+    """bus_node as a managed (lifecycle) node (transitions: ``managed.py``).
+
+    Every drive of the bus moves through the transitions together; the drives'
+    own nodes stay plain nodes, gated by the bus node's state.
+    """
+
+    def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
+        super().__init__(node_name, managed=True, **kwargs)
+        self.transitions = DriveTransitions(
+            self.get_logger().error, self.bus.start, self.bus.shutdown,
+            {node.get_fully_qualified_name(): (node.controller, self._gate(node))
+             for node in self.drive_nodes})
+
+    @staticmethod
+    def _gate(node: DriveNode):
+        def allow(allowed: bool) -> None:
+            node.motion_allowed = allowed
+        return allow
+
+
+def make_bus_node(args: list[str] | None = None, **kwargs: Any) -> BusNode:
+    """Return the node the command line asks for: plain, or managed (and autostarted)."""
+    options = parse_options(args)
+    if not options.managed:
+        return BusNode(**kwargs)
+    node = ManagedBusNode(**kwargs)
+    if options.autostart:
+        autostart(node)
+    return node
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('bus_node', BusNode, args,
+    return run_node('bus_node', lambda: make_bus_node(args), args,
                     extra_nodes=lambda node: node.drive_nodes)

@@ -24,6 +24,7 @@ import math
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -44,6 +45,7 @@ from ..errors import ParameterError, VfdError, quote
 from ..profiles import NO_FAULT
 from ..transports import load_transport_class
 from .executable import run_node
+from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import diagnostic_status, drive_diagnostic_name, fault_message, status_message
 from .parameters import LiveParameters, check_value, descriptor
 
@@ -61,12 +63,20 @@ class DriveNode(Node):
     """ROS face of one drive; all drive logic lives in DriveController."""
 
     def __init__(self, node_name: str = 'drive', controller: DriveController | None = None,
-                 **kwargs: Any) -> None:
-        """Make a drive node; with ``controller`` given, a bus runs that controller's loop."""
+                 managed: bool = False, **kwargs: Any) -> None:
+        """Make a drive node; with ``controller`` given, a bus runs that controller's loop.
+
+        ``managed``: the loop starts at configure and motion is allowed only while
+        active (``ManagedDriveNode``, or a managed bus's drives); see ``managed.py``.
+        """
         super().__init__(node_name, **kwargs)
+        #: velocity commands and ~/enable are taken (a managed node: only while active)
+        self.motion_allowed = not managed
         # Live: validated and applied at once. A bus's rate and priority belong to the
-        # bus node (read-only here); auto_enable acts only at start-up on a plain node.
-        fixed_here = {'auto_enable'} | (set(BUS_KEYS) if controller is not None else set())
+        # bus node (read-only here); auto_enable acts at start-up only on a plain node,
+        # at every activate on a managed one.
+        fixed_here = (set() if managed else {'auto_enable'}) | \
+            (set(BUS_KEYS) if controller is not None else set())
         live = {s.name for s in SETTINGS if s.live and s.name not in fixed_here}
         values = {s.name: self._declare(s.name, s.default, s.description, s.minimum,
                                         s.maximum, s.name in live) for s in SETTINGS}
@@ -108,7 +118,9 @@ class DriveNode(Node):
         self.live_parameters = LiveParameters(
             self, live, self._apply_parameters,
             {s.name: (s.minimum, s.maximum) for s in SETTINGS})
-        if self._owns_controller:
+        if managed:
+            self.controller.intent.enabled = False       # enabled at activate, per policy
+        elif self._owns_controller:
             self.controller.start()
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
@@ -143,6 +155,11 @@ class DriveNode(Node):
 
     def _on_velocity(self, msg: Float64) -> None:
         try:
+            if not self.motion_allowed:
+                self.get_logger().warning(
+                    f'velocity command {msg.data} ignored: the node is not active '
+                    '(lifecycle: configure and activate it)', throttle_duration_sec=2.0)
+                return
             outcome = self.controller.command_velocity(msg.data)
             if outcome is CommandOutcome.REJECTED:
                 self.get_logger().warning(
@@ -207,6 +224,11 @@ class DriveNode(Node):
         async def handle(_request: Trigger.Request,
                          response: Trigger.Response) -> Trigger.Response:
             try:
+                if action == 'enable' and not self.motion_allowed:
+                    response.success = False
+                    response.message = 'the node is not active (lifecycle): activate it first'
+                    self.get_logger().warning(f'enable refused: {response.message}')
+                    return response
                 result = await self._wait(action)
                 response.success, response.message = result.success, result.message
             except Exception as exc:  # noqa: BLE001
@@ -273,5 +295,38 @@ class DriveNode(Node):
         super().destroy_node()
 
 
+class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
+    """drive_node as a managed (lifecycle) node: transitions as in ``managed.py``."""
+
+    def __init__(self, node_name: str = 'drive', **kwargs: Any) -> None:
+        super().__init__(node_name, managed=True, **kwargs)
+        self.transitions = DriveTransitions(
+            self.get_logger().error, self.controller.start, self.controller.shutdown,
+            {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
+
+    def _allow_motion(self, allowed: bool) -> None:
+        self.motion_allowed = allowed
+
+
+def make_drive_node(args: list[str] | None = None, **kwargs: Any) -> DriveNode:
+    """Return the node the command line asks for: plain, or managed (and autostarted)."""
+    options = parse_options(args)
+    if not options.managed:
+        return DriveNode(**kwargs)
+    node = ManagedDriveNode(**kwargs)
+    if options.autostart:
+        autostart(node)
+    return node
+
+
+def autostart(node: LifecycleNode) -> None:
+    """Configure and activate, as a lifecycle manager with autostart would; log a failure."""
+    for transition in (node.trigger_configure, node.trigger_activate):
+        if transition() != TransitionCallbackReturn.SUCCESS:
+            node.get_logger().error('autostart stopped: the node stays in its current state '
+                                    'for a lifecycle manager or operator to retry')
+            return
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('drive_node', DriveNode, args)
+    return run_node('drive_node', lambda: make_drive_node(args), args)
