@@ -18,6 +18,7 @@ Parameters:
   silent_unit_ids    drives that do not hear or answer (cable unplugged)
   refused            ["A00.15", ...] registers every drive refuses (illegal address)
   initial_values     ["B04.02=1.0", ...] parameter values at power-up
+  shutdown_grace     s the line stays open after Ctrl-C while drivers still talk
 The line faults, silent_unit_ids and refused can be changed at run time with
 `ros2 param set`, in both directions (an empty list "[]" clears them).
 Services:
@@ -27,6 +28,8 @@ Services:
 from __future__ import annotations
 
 import math
+import sys
+import time
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -43,6 +46,9 @@ from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
 from .rtu_line import LineFaults, SimulatedRtuLine
 from .tcp_server import SimulatedTcpServer
+
+#: s without a request after which the line counts as quiet at shutdown
+QUIET_LINE = 0.5
 
 
 def parse_initial_values(items: list[str]) -> dict[str, float]:
@@ -84,6 +90,10 @@ class SimDriveNode(Node):
             declare(name, default, description, *((0.0, 1.0) if name.endswith('_rate')
                                                   else (None, None)), live=True)
         tcp_port = int(declare('tcp_port', 1502, 'modbus_tcp: port on 127.0.0.1 (0 = any)'))
+        self.shutdown_grace = float(declare(
+            'shutdown_grace', 3.0, 's the line stays open after Ctrl-C/SIGTERM while the host '
+            'still talks (its drivers write their stops); it closes once the line is quiet '
+            f'for {QUIET_LINE:g} s', 0.0, 60.0))
         if transport == 'canopen':
             self.line, where = self._canopen(profile, unit_ids, initial)
         else:
@@ -203,7 +213,48 @@ class SimDriveNode(Node):
                              'fault cause cleared: a fault reset will now succeed')
         return response
 
+    def _activity(self) -> int:
+        """Return the requests (Modbus) or frames (CANopen) the simulated drives received."""
+        return sum(getattr(d, 'requests', 0) + getattr(d, 'rpdos_received', 0) +
+                   getattr(d, 'heartbeat_events', 0) for d in self.drives)
+
+    def serve_until_quiet(self, grace: float, quiet: float = 0.5) -> float:
+        """Keep serving until the host has been silent for ``quiet`` s (at most ``grace`` s).
+
+        Ctrl-C reaches a launch file's processes in the same instant: the drivers
+        write their stops as they shut down, so the line stays open for them.
+        Returns the seconds waited.
+        """
+        start = time.monotonic()
+        last, changed = self._activity(), start
+        while time.monotonic() - start < grace:
+            time.sleep(0.02)
+            now = self._activity()
+            if now != last:
+                last, changed = now, time.monotonic()
+            elif time.monotonic() - changed >= quiet:
+                break
+        return time.monotonic() - start
+
+    def exit_report(self) -> list[str]:
+        """Return one line per drive: what the host left it doing when the line closed."""
+        return [f'unit {d.unit_id} at exit: run requested '
+                f'{"yes" if getattr(d, "run_requested", False) else "no"}, speed '
+                f'{getattr(d, "speed_rpm", 0.0):.1f} rpm' for d in self.drives]
+
+    def _say(self, text: str) -> None:
+        if self.context.ok():
+            self.get_logger().info(text)
+        else:       # /rosout is gone with the context: the log line still goes out
+            print(f'[{self.get_fully_qualified_name()}] {text}', file=sys.stderr, flush=True)
+
     def destroy_node(self) -> None:
+        if not self.context.ok():
+            # Shut down by a signal (Ctrl-C, launch's SIGINT/SIGTERM), not by a caller.
+            waited = self.serve_until_quiet(self.shutdown_grace, QUIET_LINE)
+            self._say(f'line quiet after {waited:.2f} s: closing it')
+        for line in self.exit_report():
+            self._say(line)
         self.line.stop()
         super().destroy_node()
 
