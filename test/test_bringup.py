@@ -222,3 +222,16 @@ def test_aggregator_yaml_groups_the_diagnostic_names():
     assert drive == 'agv/left_wheel/drive: drive'
     assert any(p in drive for p in drives) and not any(p in drive for p in buses)
     assert any(p in bus for p in buses) and not any(p in bus for p in drives)
+
+
+def test_readme_config_paths_work_from_anywhere():
+    """The README's --params-file / config_file paths: installed files, not relative paths."""
+    import re
+    readme = (LAUNCH_DIR.parent / 'README.md').read_text()
+    installed = re.findall(r'\$CONFIG/([\w./-]+\.yaml)', readme)
+    assert installed, 'the README shows the installed config files'
+    for name in installed:
+        assert (LAUNCH_DIR.parent / 'config' / name).is_file(), name
+    relative = re.findall(r'(?:--params-file|config_file:=|params_file:=)\s*([^\s$<][^\s]*)',
+                          readme)
+    assert not relative, f'paths that depend on the working directory: {relative}'
