@@ -225,3 +225,21 @@ def test_managed_bus_moves_every_drive_through_the_transitions(ros_context, tmp_
         bus.destroy_node()
         tester.destroy_node()
         line.stop()
+
+
+def test_rate_and_auto_enable_set_before_configure_are_in_force(managed):
+    from test_runtime_parameters import set_parameter
+    h = managed(auto_enable=False)
+    node = f'{h.namespace}/drive'
+    # Before configure nothing is written yet: a slow rate re-sizes the drive-side
+    # comm-loss timeout as at start-up (running, the same change is refused).
+    assert set_parameter(h.tester, node, 'control_rate', 0.5).successful
+    assert h.node.controller.protection.timeout > 2.0
+    assert set_parameter(h.tester, node, 'control_rate', 100.0).successful
+    assert h.node.controller.protection.timeout == pytest.approx(0.3)
+    assert set_parameter(h.tester, node, 'auto_enable', True).successful   # live when managed
+    assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
+    assert h.node.controller._loop.period == pytest.approx(0.01)
+    h.stream(1.0)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)       # auto_enable now
+    wait_for(lambda: at_speed(h.sim, 1.0), 6.0, 'moving: auto_enable set before activate')

@@ -224,16 +224,27 @@ class DriveController:
         timeout changes under the same lock as the commands that feed it. A new
         ``cycle_period`` is refused when the drive's own comm-loss timeout,
         written at connect, would no longer fit (see ``check_cycle_period``).
+        ``cycle_period`` only for a controller that runs its own loop (a bus sets
+        its rate with ``Bus.set_rate``).
         """
         unknown = set(changes) - LIVE_FIELDS
         if unknown:
             raise ParameterError(f'not changeable at run time: {", ".join(sorted(unknown))}')
         new = replace(self.config, **changes)       # __post_init__ validates
-        if new.cycle_period != self.config.cycle_period and self._loop is not None:
-            self.check_cycle_period(new.cycle_period)
+        replan = False
+        if new.cycle_period != self.config.cycle_period:
+            if self._loop is not None:
+                self.check_cycle_period(new.cycle_period)
+            else:       # not running (a managed node before configure): plan anew
+                interval = max(new.cycle_period, self.drive.cycle_seconds()) + \
+                    self.drive.action_seconds()
+                self.drive.host_loss_plan(new.drive_comm_timeout, interval)   # may refuse
+                replan = True
         with self._lock:
             self.config = new
             self._watchdog.timeout = new.command_timeout
+        if replan:
+            self.plan_host_loss()
         self.services.action_timeout = new.action_timeout
         self.services.stop_timeout = new.stop_timeout
         if self._loop is not None:
