@@ -241,3 +241,16 @@ def test_sim_drive_read_only_and_line_faults_only_where_simulated(ros_context):
         executor.remove_node(node)
         node.destroy_node()
         tester.destroy_node()
+
+
+def test_a_faster_rate_takes_effect_at_once_not_after_the_old_period():
+    from vfd_ros2.control.loop import CycleLoop
+    steps = []
+    loop = CycleLoop('test', 30.0, lambda: steps.append(time.monotonic()), lambda: None)
+    loop.start()
+    try:
+        wait_for(lambda: steps, 2.0, 'the first cycle')
+        loop.set_period(0.01)
+        wait_for(lambda: len(steps) >= 5, 5.0, 'cycles at the new period (not 30 s later)')
+    finally:
+        loop.stop()

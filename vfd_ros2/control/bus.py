@@ -155,8 +155,9 @@ class Bus:
         """Change the bus thread's cycle rate (Hz) at once; ParameterError why not.
 
         Every drive's controller gets the new period too (what it reports and
-        sizes with); refused, changing nothing, when a drive's comm-loss timeout
-        written at connect would not fit the new addressing interval.
+        sizes with); while running, refused, changing nothing, when a drive's
+        comm-loss timeout written at connect would not fit the new addressing
+        interval (before the bus starts, the timeouts are sized anew).
         """
         if not (math.isfinite(rate) and rate > 0):
             raise ParameterError(f'control_rate must be a finite number > 0, got {rate}')
@@ -166,13 +167,19 @@ class Bus:
         try:
             interval = self._addressing_interval()
             for controller in self.controllers.values():
-                controller.check_cycle_period(period, interval)
+                if self._loop is not None:
+                    controller.check_cycle_period(period, interval)
+                else:   # not running yet (a managed bus): nothing written, plan anew
+                    controller.drive.host_loss_plan(controller.config.drive_comm_timeout,
+                                                    interval)
         except Exception:
             self.period = previous
             raise
         self.addressing_interval = interval
         for controller in self.controllers.values():
             controller.config = replace(controller.config, cycle_period=period)
+            if self._loop is None:
+                controller.plan_host_loss(interval)
         if self._loop is not None:
             self._loop.set_period(period)
 
