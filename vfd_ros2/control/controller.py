@@ -412,8 +412,15 @@ class DriveController:
         self.drive.close()
         self.link.closed()
         self._actions.fail_all('the driver is shutting down')
+
+    def mark_closed(self) -> None:
+        """Publish an offline snapshot after the loop ended (a managed node's cleanup).
+
+        Without it ``state`` keeps the last cycle's (online, maybe running) until
+        the loop runs again. Call only while no loop runs this controller.
+        """
         self._reading = Reading()
-        self._publish_state()        # the status says offline, not the last cycle's state
+        self._publish_state()
 
     # --- internals -----------------------------------------------------------------
 

@@ -101,6 +101,11 @@ class DriveTransitions:
         for name in names if names is not None else self._gates:
             self._gates[name][1](allowed)
 
+    def _close(self) -> None:
+        self._stop_loop()            # the loop's end writes the stop, then closes the link
+        for controller, _ in self._gates.values():
+            controller.mark_closed()  # ~/status says offline, not the last cycle's state
+
     def configure(self) -> TransitionCallbackReturn:
         self._allow(False)
         controllers = {name: gate[0] for name, gate in self._gates.items()}
@@ -111,7 +116,7 @@ class DriveTransitions:
             max(c.addressing_interval() for c in controllers.values())
         offline = wait_online(controllers, timeout)
         if offline:
-            self._stop_loop()
+            self._close()
             return self._fail('configure', 'drive(s) not online: ' + '; '.join(
                 f'{name}: {why}' for name, why in offline.items()), FAILURE)
         return SUCCESS
@@ -143,7 +148,7 @@ class DriveTransitions:
 
     def cleanup(self) -> TransitionCallbackReturn:
         self._allow(False)
-        self._stop_loop()            # the loop's end writes the stop, then closes the link
+        self._close()
         return SUCCESS
 
     def shutdown(self) -> TransitionCallbackReturn:
