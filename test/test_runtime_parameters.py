@@ -141,6 +141,8 @@ def test_descriptors_tell_live_from_read_only_with_ranges(make_harness):
     priority = describe(h.tester, node, 'realtime_priority')
     assert priority.read_only and priority.integer_range[0].to_value == 99
     assert describe(h.tester, node, 'transport.port').read_only
+    timeout = describe(h.tester, node, 'transport.timeout')
+    assert timeout.read_only and timeout.floating_point_range[0].to_value == 10.0
 
 
 @pytest.fixture

@@ -87,7 +87,9 @@ class DriveNode(Node):
                                  ('drive', drive_class_for(transport_class).settings)):
             for setting in settings:
                 name = f'{prefix}.{setting.name}'
-                values[name] = self._declare(name, setting.default, setting.description)
+                values[name] = self._declare(name, setting.default, setting.description,
+                                             setting.minimum, setting.maximum)
+                check_value(name, values[name], setting.minimum, setting.maximum)
         self._owns_controller = controller is None
         self.controller: DriveController = controller or build_controller(values)
         self.profile_name = self.controller.drive.profile.name
