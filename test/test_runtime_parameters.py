@@ -239,6 +239,11 @@ def test_sim_drive_read_only_and_line_faults_only_where_simulated(ros_context):
         assert not result.successful and 'modbus_rtu' in result.reason
         assert set_parameter(tester, '/simro/sim_drive', 'silent_unit_ids', [1]).successful
         assert node.drives[0].silent
+        # An untyped empty list (rclpy: byte array; ros2cli "[]": bool array) plugs it back.
+        assert set_parameter(tester, '/simro/sim_drive', 'silent_unit_ids', []).successful
+        assert not node.drives[0].silent
+        result = set_parameter(tester, '/simro/sim_drive', 'silent_unit_ids', ['x'])
+        assert not result.successful and not node.drives[0].silent
     finally:
         executor.remove_node(node)
         node.destroy_node()
