@@ -2,8 +2,12 @@
 
 The demo's velocity profile runs too (run_demo:=true).
 
-    ros2 launch vfd_ros2 demo.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/sim_agv]
+    ros2 launch vfd_ros2 demo.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/demo]
+        [managed:=true [autostart:=false]]
 
+managed:=true starts the drive nodes as lifecycle nodes (configured and activated at
+start unless autostart:=false; then a lifecycle manager or `ros2 lifecycle set` does it).
+Ctrl-C: each simulator keeps its line open until its driver has written the stop.
 The node list comes from vfd_ros2.apps.bringup.sim_wheels (unit-tested); this file only
 turns it into launch actions.
 """
@@ -14,23 +18,27 @@ from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from vfd_ros2.apps.bringup import DEFAULT_SIM_DIR, sim_wheels
+from vfd_ros2.apps.bringup import DEFAULT_DEMO_DIR, sim_wheels
 
 
 def _nodes(context):
-    directory = LaunchConfiguration('directory').perform(context)
-    return [Node(package='vfd_ros2', executable=spec.executable, name=spec.name,
-                 namespace=spec.namespace, parameters=[spec.parameters], output='screen')
-            for spec in sim_wheels(directory=directory)]
+    def value(name):
+        return LaunchConfiguration(name).perform(context)
+    return [Node(**spec.managed(value('managed'), value('autostart')).launch_kwargs())
+            for spec in sim_wheels(directory=value('directory'))]
 
 
 def generate_launch_description():
     return LaunchDescription([
-        DeclareLaunchArgument('directory', default_value=DEFAULT_SIM_DIR,
+        DeclareLaunchArgument('directory', default_value=DEFAULT_DEMO_DIR,
                               description='where the emulated serial ports are created'),
         DeclareLaunchArgument('run_demo', default_value='true',
                               description='also run the demo velocity profile'),
+        DeclareLaunchArgument('managed', default_value='false',
+                              description='drive nodes as lifecycle (managed) nodes'),
+        DeclareLaunchArgument('autostart', default_value='true',
+                              description='managed nodes configure and activate at start'),
         OpaqueFunction(function=_nodes),
         Node(package='vfd_ros2', executable='demo', arguments=['--attach'], output='screen',
-             condition=IfCondition(LaunchConfiguration('run_demo'))),
+             emulate_tty=False, condition=IfCondition(LaunchConfiguration('run_demo'))),
     ])

@@ -117,7 +117,7 @@ class DriveHarness(DriveClient):
                  sim_initial: dict[str, float] | None = None,
                  node_parameters: dict[str, Any] | None = None,
                  line_faults: LineFaults | None = None,
-                 refused: tuple[str, ...] = ()) -> None:
+                 refused: tuple[str, ...] = (), node_class: type = DriveNode) -> None:
         self.profile = load_profile(profile)
         velocity = self.profile.velocity
         initial = {code: 0.5 for code in (velocity.acceleration_time, velocity.deceleration_time)
@@ -139,7 +139,7 @@ class DriveHarness(DriveClient):
             'diagnostics_rate': 5.0, 'stop_timeout': 3.0, 'command_timeout': 0.5,
         }
         parameters.update(node_parameters or {})
-        self.node = DriveNode('drive', namespace=self.namespace, context=context,
+        self.node = node_class('drive', namespace=self.namespace, context=context,
                               parameter_overrides=[Parameter(k, value=v)
                                                    for k, v in parameters.items()])
         super().__init__(context, Node('tester', namespace=self.namespace, context=context),

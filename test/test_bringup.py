@@ -11,9 +11,11 @@ import pytest
 import yaml
 
 from vfd_ros2.apps.bringup import (
+    DEFAULT_DEMO_DIR,
     DEFAULT_SIM_DIR,
     NodeSpec,
     drive_spec,
+    lifecycle_arguments,
     sim_agv,
     sim_agv_bus,
     sim_wheels,
@@ -105,28 +107,55 @@ def _load_launch_file(name):
     return module
 
 
+PLAIN = {'managed': 'false', 'autostart': 'true'}
+
+
 def test_demo_launch_file_builds_the_bringup_nodes(monkeypatch):
     Action = _fake_launch_modules(monkeypatch)
     module = _load_launch_file('demo.launch.py')
     actions = module.generate_launch_description()
     opaque = next(a for a in actions if a.kwargs.get('function'))
-    nodes = opaque.kwargs['function']({'directory': '/tmp/x'})
+    nodes = opaque.kwargs['function']({'directory': '/tmp/x', **PLAIN})
     expected = sim_wheels(directory='/tmp/x')
     assert [(n.kwargs['executable'], n.kwargs['namespace'], n.kwargs['parameters'])
             for n in nodes] == [(s.executable, s.namespace, [s.parameters]) for s in expected]
+    assert all(n.kwargs['arguments'] == [] for n in nodes)
     demo = [a for a in actions if isinstance(a, Action) and a.kwargs.get('executable') == 'demo']
     assert demo and demo[0].kwargs['arguments'] == ['--attach']
+    # Piped launch output carries no ANSI colour codes: no node pretends to be on a tty.
+    assert all(a.kwargs.get('emulate_tty') is False for a in [*nodes, *demo])
     defaults = {a.args[0]: a.kwargs.get('default_value') for a in actions
                 if a.args and isinstance(a.args[0], str)}
-    assert defaults['directory'] == DEFAULT_SIM_DIR
+    assert defaults['directory'] == DEFAULT_DEMO_DIR != DEFAULT_SIM_DIR
+    assert (defaults['managed'], defaults['autostart']) == ('false', 'true')
+
+    managed = opaque.kwargs['function']({'directory': '/tmp/x', 'managed': 'true',
+                                         'autostart': 'false'})
+    assert {n.kwargs['executable']: n.kwargs['arguments'] for n in managed} == {
+        'sim_drive': [], 'drive_node': ['--managed']}
+
+
+def test_lifecycle_arguments():
+    assert lifecycle_arguments('false', 'true') == ()
+    assert lifecycle_arguments('True', 'true') == ('--managed', '--autostart')
+    assert lifecycle_arguments(True, False) == ('--managed',)
+    with pytest.raises(ValueError, match='yes'):
+        lifecycle_arguments('yes', 'true')
+    spec = NodeSpec('drive_node', 'drive', '/a').managed('true', 'true')
+    assert spec.command(Path('p.yaml'))[:3] == ['drive_node', '--managed', '--autostart']
 
 
 def test_drive_launch_file_passes_the_params_file(monkeypatch):
     _fake_launch_modules(monkeypatch)
     actions = _load_launch_file('drive.launch.py').generate_launch_description()
-    node = next(a for a in actions if a.kwargs.get('executable') == 'drive_node')
-    assert node.kwargs['package'] == 'vfd_ros2'
-    assert node.kwargs['parameters'][0].args == ('params_file',)
+    opaque = next(a for a in actions if a.kwargs.get('function'))
+    context = {'params_file': '/p/drive.yaml', 'name': 'drive', 'namespace': '/agv/left',
+               'managed': 'true', 'autostart': 'true'}
+    node = opaque.kwargs['function'](context)[0]
+    assert node.kwargs['package'] == 'vfd_ros2' and node.kwargs['executable'] == 'drive_node'
+    assert node.kwargs['parameters'] == ['/p/drive.yaml']
+    assert node.kwargs['arguments'] == ['--managed', '--autostart']
+    assert node.kwargs['emulate_tty'] is False
 
 
 @pytest.mark.parametrize('path', sorted((LAUNCH_DIR.parent / 'config').glob('*_drive.yaml')),
@@ -164,19 +193,27 @@ def test_sim_agv_launch_file_writes_the_bus_file(monkeypatch, tmp_path):
     _fake_launch_modules(monkeypatch)
     actions = _load_launch_file('sim_agv.launch.py').generate_launch_description()
     opaque = next(a for a in actions if a.kwargs.get('function'))
-    nodes = opaque.kwargs['function']({'directory': str(tmp_path)})
+    nodes = opaque.kwargs['function']({'directory': str(tmp_path), **PLAIN})
     assert [n.kwargs['executable'] for n in nodes] == ['sim_drive', 'bus_node', 'diff_drive']
     written = parse_bus_config(yaml.safe_load((tmp_path / 'bus.yaml').read_text()))
     assert written == parse_bus_config(sim_agv_bus(str(tmp_path)))
+    managed = opaque.kwargs['function']({'directory': str(tmp_path), 'managed': 'true',
+                                         'autostart': 'true'})
+    assert [n.kwargs['arguments'] for n in managed] == [[], ['--managed', '--autostart'], []]
 
 
 def test_bus_launch_file(monkeypatch):
     _fake_launch_modules(monkeypatch)
     actions = _load_launch_file('bus.launch.py').generate_launch_description()
-    node = next(a for a in actions if a.kwargs.get('executable') == 'bus_node')
-    assert node.kwargs['parameters'][0]['config_file'].args == ('config_file',)
-    for topic in ('joint_commands_topic', 'joint_states_topic'):
-        assert node.kwargs['parameters'][0][topic].args == (topic,)
+    opaque = next(a for a in actions if a.kwargs.get('function'))
+    node = opaque.kwargs['function']({'config_file': '/c/bus.yaml', 'name': 'bus',
+                                      'namespace': '/', 'joint_commands_topic': '/cmd',
+                                      'joint_states_topic': '', **PLAIN})[0]
+    assert node.kwargs['executable'] == 'bus_node'
+    assert node.kwargs['parameters'][0]['config_file'] == '/c/bus.yaml'
+    assert node.kwargs['parameters'][0]['joint_commands_topic'] == '/cmd'
+    assert node.kwargs['parameters'][0]['joint_states_topic'] == ''
+    assert node.kwargs['arguments'] == [] and node.kwargs['emulate_tty'] is False
 
 
 def test_aggregator_yaml_groups_the_diagnostic_names():
@@ -190,3 +227,16 @@ def test_aggregator_yaml_groups_the_diagnostic_names():
     assert drive == 'agv/left_wheel/drive: drive'
     assert any(p in drive for p in drives) and not any(p in drive for p in buses)
     assert any(p in bus for p in buses) and not any(p in bus for p in drives)
+
+
+def test_readme_config_paths_work_from_anywhere():
+    """The README's --params-file / config_file paths: installed files, not relative paths."""
+    import re
+    readme = (LAUNCH_DIR.parent / 'README.md').read_text()
+    installed = re.findall(r'\$CONFIG/([\w./-]+\.yaml)', readme)
+    assert installed, 'the README shows the installed config files'
+    for name in installed:
+        assert (LAUNCH_DIR.parent / 'config' / name).is_file(), name
+    relative = re.findall(r'(?:--params-file|config_file:=|params_file:=)\s*([^\s$<][^\s]*)',
+                          readme)
+    assert not relative, f'paths that depend on the working directory: {relative}'

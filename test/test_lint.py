@@ -22,8 +22,11 @@ def ruff_command() -> list[str]:
     beside = Path(sys.executable).with_name('ruff')
     found = str(beside) if beside.exists() else shutil.which('ruff')
     if not found:
-        # scripts/test always has it (requirements.txt); a ROS workspace may not.
-        pytest.skip('ruff is not installed (pip install ruff)')
+        # package.xml declares it (test_depend python3-ruff-pip): a missing ruff is a
+        # broken test environment, never a reason to pass the lint quietly.
+        pytest.fail('ruff is not installed, although package.xml declares it as a test '
+                    'dependency: rosdep install --from-paths src --ignore-src -y '
+                    '(rosdep key python3-ruff-pip), or pip install ruff')
     return [found]
 
 

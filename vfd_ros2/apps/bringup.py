@@ -6,7 +6,7 @@ everything a launch test would have to check is plain Python.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +15,27 @@ import yaml
 from ..control.settings import SETTINGS
 
 DEFAULT_SIM_DIR = '/tmp/vfd_ros2/sim_agv'
+#: the demo's lines: apart from the simulated AGV's, so both can run side by side
+DEFAULT_DEMO_DIR = '/tmp/vfd_ros2/demo'
+#: executables that can run as managed (lifecycle) nodes: ``--managed [--autostart]``
+MANAGEABLE = ('drive_node', 'bus_node')
+
+
+def flag(value: Any) -> bool:
+    """Return a launch argument ('true'/'false', any case, or a bool) as a bool."""
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text not in ('true', 'false', '1', '0'):
+        raise ValueError(f'expected true or false, got {value!r}')
+    return text in ('true', '1')
+
+
+def lifecycle_arguments(managed: Any, autostart: Any) -> tuple[str, ...]:
+    """Return the command-line options of a drive/bus node for ``managed``/``autostart``."""
+    if not flag(managed):
+        return ()
+    return ('--managed', '--autostart') if flag(autostart) else ('--managed',)
 
 
 @dataclass(frozen=True)
@@ -25,6 +46,22 @@ class NodeSpec:
     name: str
     namespace: str
     parameters: dict[str, Any] = field(default_factory=dict)
+    arguments: tuple[str, ...] = ()
+
+    def managed(self, managed: Any, autostart: Any = True) -> NodeSpec:
+        """Return this spec as a managed node (drive_node, bus_node; others unchanged)."""
+        if self.executable not in MANAGEABLE:
+            return self
+        return replace(self, arguments=lifecycle_arguments(managed, autostart))
+
+    def launch_kwargs(self) -> dict[str, Any]:
+        """Return the keyword arguments of a launch_ros ``Node`` action for this spec.
+
+        ``emulate_tty`` is off: a piped or logged launch output carries no ANSI codes.
+        """
+        return {'package': 'vfd_ros2', 'executable': self.executable, 'name': self.name,
+                'namespace': self.namespace, 'parameters': [dict(self.parameters)],
+                'arguments': list(self.arguments), 'output': 'screen', 'emulate_tty': False}
 
     @property
     def fully_qualified_name(self) -> str:
@@ -42,7 +79,7 @@ class NodeSpec:
 
     def command(self, params_file: Path) -> list[str]:
         """Return the argv for running the node as a process (``ros2 run`` equivalent)."""
-        return [self.executable, '--ros-args', '-r', f'__ns:={self.namespace}',
+        return [self.executable, *self.arguments, '--ros-args', '-r', f'__ns:={self.namespace}',
                 '-r', f'__node:={self.name}', '--params-file', str(params_file)]
 
 
@@ -56,7 +93,7 @@ def drive_spec(namespace: str, parameters: dict[str, Any], name: str = 'drive') 
     return NodeSpec('drive_node', name, namespace, dict(parameters))
 
 
-def sim_wheels(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
+def sim_wheels(directory: str = DEFAULT_DEMO_DIR, profile: str = 'boneng_am',
                wheels: tuple[str, ...] = ('left_wheel', 'right_wheel'),
                gear_ratio: float = 10.0, ramp_time: float = 1.0) -> list[NodeSpec]:
     """Per wheel, a simulated drive on its own pty line and its own drive_node.

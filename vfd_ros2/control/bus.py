@@ -13,7 +13,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping
 
 import yaml
@@ -158,6 +158,38 @@ class Bus:
             extra = max(max(d.connect_seconds() for d in drives),
                         max(t.failed_exchange_seconds() for t in self.transports))
         return max(self.period, cycle) + extra + max(d.action_seconds() for d in drives)
+
+    def set_rate(self, rate: float) -> None:
+        """Change the bus thread's cycle rate (Hz) at once; ParameterError why not.
+
+        Every drive's controller gets the new period too (what it reports and
+        sizes with); while running, refused, changing nothing, when a drive's
+        comm-loss timeout written at connect would not fit the new addressing
+        interval (before the bus starts, the timeouts are sized anew).
+        """
+        if not (math.isfinite(rate) and rate > 0):
+            raise ParameterError(f'control_rate must be a finite number > 0, got {rate}')
+        period = 1.0 / rate
+        previous = self.period
+        self.period = period
+        try:
+            interval = self._addressing_interval()
+            for controller in self.controllers.values():
+                if self._loop is not None:
+                    controller.check_cycle_period(period, interval)
+                else:   # not running yet (a managed bus): nothing written, plan anew
+                    controller.drive.host_loss_plan(controller.config.drive_comm_timeout,
+                                                    interval)
+        except Exception:
+            self.period = previous
+            raise
+        self.addressing_interval = interval
+        for controller in self.controllers.values():
+            controller.config = replace(controller.config, cycle_period=period)
+            if self._loop is None:
+                controller.plan_host_loss(interval)
+        if self._loop is not None:
+            self._loop.set_period(period)
 
     def step(self) -> None:
         controllers = list(self.controllers.values())

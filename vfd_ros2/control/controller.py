@@ -27,7 +27,7 @@ import math
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 from ..drives import Drive, HostLossProtection, Reading
@@ -42,6 +42,11 @@ from .state import ActionResult, CommandOutcome, DriveState, RunState
 from .watchdog import CommandWatchdog
 
 log = logging.getLogger(__name__)
+
+
+#: what ``DriveController.reconfigure`` may change while the loop runs
+LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
+                         'action_timeout', 'stop_timeout'})
 
 
 @dataclass(frozen=True)
@@ -160,7 +165,7 @@ class DriveController:
             with self._lock:
                 self._rejected += 1
             return CommandOutcome.REJECTED
-        limit = self.config.max_velocity
+        limit = self.config.max_velocity     # one immutable config, read once
         clamped = min(max(velocity, -limit), limit)
         with self._lock:
             # A new value, or the first command after a watchdog stop, preempts the
@@ -216,6 +221,59 @@ class DriveController:
                         f'{parameter.code} is set to {item.value:g} at every connect '
                         f'({item.why}): set apply_commissioning false to manage it yourself')
         self.drive.check_write(key, value, running=False)
+
+    def reconfigure(self, **changes: object) -> ControllerConfig:
+        """Apply live settings (``LIVE_FIELDS``) at once, all or none; ParameterError why not.
+
+        The new settings are validated as a whole before anything changes. The
+        loop reads one immutable ``ControllerConfig`` per use, and the watchdog's
+        timeout changes under the same lock as the commands that feed it. A new
+        ``cycle_period`` is refused when the drive's own comm-loss timeout,
+        written at connect, would no longer fit (see ``check_cycle_period``).
+        ``cycle_period`` only for a controller that runs its own loop (a bus sets
+        its rate with ``Bus.set_rate``).
+        """
+        unknown = set(changes) - LIVE_FIELDS
+        if unknown:
+            raise ParameterError(f'not changeable at run time: {", ".join(sorted(unknown))}')
+        new = replace(self.config, **changes)       # __post_init__ validates
+        replan = False
+        if new.cycle_period != self.config.cycle_period:
+            if self._loop is not None:
+                self.check_cycle_period(new.cycle_period)
+            else:       # not running (a managed node before configure): plan anew
+                interval = max(new.cycle_period, self.drive.cycle_seconds()) + \
+                    self.drive.action_seconds()
+                self.drive.host_loss_plan(new.drive_comm_timeout, interval)   # may refuse
+                replan = True
+        with self._lock:
+            self.config = new
+            self._watchdog.timeout = new.command_timeout
+        if replan:
+            self.plan_host_loss()
+        self.services.action_timeout = new.action_timeout
+        self.services.stop_timeout = new.stop_timeout
+        if self._loop is not None:
+            self._loop.set_period(new.cycle_period)
+        return new
+
+    def check_cycle_period(self, period: float, interval: float | None = None) -> None:
+        """Refuse a cycle period the drive-side host-loss protection does not fit.
+
+        ``interval`` is the new worst-case addressing interval (default: this
+        drive alone at ``period``). The protection was sized and written at
+        connect; a period that would need another one is refused (ParameterError)
+        rather than left to trip the drive.
+        """
+        if interval is None:
+            interval = max(period, self.drive.cycle_seconds()) + self.drive.action_seconds()
+        plan = self.drive.host_loss_plan(self.config.drive_comm_timeout, interval)
+        if plan.active != self.protection.active or \
+                abs(plan.timeout - self.protection.timeout) > 1e-9:
+            raise ParameterError(
+                f'a cycle of {period:g} s needs the drive-side protection '
+                f'{plan.describe()} instead of {self.protection.describe()} written at '
+                'connect: change control_rate and drive_comm_timeout with a restart')
 
     def submit(self, name: str, *args: object) -> Future:
         """Queue a service action; the Future resolves to an ActionResult."""
@@ -360,6 +418,15 @@ class DriveController:
         self.drive.close()
         self.link.closed()
         self._actions.fail_all('the driver is shutting down')
+
+    def mark_closed(self) -> None:
+        """Publish an offline snapshot after the loop ended (a managed node's cleanup).
+
+        Without it ``state`` keeps the last cycle's (online, maybe running) until
+        the loop runs again. Call only while no loop runs this controller.
+        """
+        self._reading = Reading()
+        self._publish_state()
 
     # --- internals -----------------------------------------------------------------
 

@@ -44,6 +44,7 @@ class CycleLoop:
         self._clock = clock
         self._stop = threading.Event()
         self._preempt_requested = threading.Event()
+        self._rescheduled = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
         self.errors = 0
@@ -70,6 +71,12 @@ class CycleLoop:
         """Run ``preempt`` now (thread-safe; a no-op without ``preempt``)."""
         if self._preempt is not None:
             self._preempt_requested.set()
+
+    def set_period(self, period: float) -> None:
+        """Change the period from any thread; a cycle waiting longer is brought forward."""
+        self.period = period
+        self._rescheduled.set()
+        self._preempt_requested.set()
 
     def stop(self, timeout: float = 2.0) -> None:
         self._stop.set()
@@ -104,6 +111,9 @@ class CycleLoop:
                     if delay <= 0 or not self._preempt_requested.wait(delay):
                         break
                 self._preempt_requested.clear()
+                if self._rescheduled.is_set():
+                    self._rescheduled.clear()
+                    next_cycle = min(next_cycle, self._clock() + self.period)
                 if self._preempt is not None and not self._stop.is_set():
                     self._guarded(self._preempt)
         self._guarded(self._finish)

@@ -19,40 +19,58 @@ from .controller import ControllerConfig
 
 @dataclass(frozen=True)
 class Setting:
+    """One setting: name, default, what it means, its valid range, whether it is live.
+
+    ``minimum``/``maximum`` (inclusive, ``None`` = unbounded) become the ROS
+    parameter's range; ``live`` settings can be changed while the driver runs
+    (``DriveController.reconfigure``), all others are read-only once started.
+    """
+
     name: str
     default: Any
     description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    live: bool = False
 
 
 SETTINGS: tuple[Setting, ...] = (
     Setting('drive.profile', 'boneng_am', 'drive family: a shipped profile name or a YAML path'),
     Setting('transport.type', 'modbus_rtu', 'transport plugin: modbus_rtu, modbus_tcp, ...'),
     Setting('transport.unit_id', 1,
-            "the drive's address on the link (Modbus slave id, CANopen node id)"),
-    Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn (> 0)'),
+            "the drive's address on the link (Modbus slave id, CANopen node id)", 0, 255),
+    Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn', 0.001, 10000.0),
     Setting('invert_direction', False, 'reverse the sign between ROS and the drive'),
     Setting('motor.rated_speed_rpm', 0.0,
-            "motor rated speed = 100 % setpoint; 0 = the profile's nameplate default"),
-    Setting('motor.pole_pairs', 0, 'motor pole pairs (Hz <-> rpm); 0 = profile default'),
-    Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped'),
-    Setting('command_timeout', 0.5, 's without a valid velocity command before the drive stops'),
-    Setting('control_rate', 50.0, 'Hz of the command/poll cycle'),
+            "motor rated speed = 100 % setpoint; 0 = the profile's nameplate default",
+            0.0, 100000.0),
+    Setting('motor.pole_pairs', 0, 'motor pole pairs (Hz <-> rpm); 0 = profile default', 0, 100),
+    Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped',
+            0.001, 10000.0, live=True),
+    Setting('command_timeout', 0.5, 's without a valid velocity command before the drive stops',
+            0.01, 60.0, live=True),
+    Setting('control_rate', 50.0, 'Hz of the command/poll cycle (of the bus thread on a bus)',
+            0.5, 10000.0, live=True),
     Setting('realtime_priority', 0,
             'SCHED_FIFO priority (1..99) of the control thread, so that a loaded machine '
             'cannot delay its cycles; 0 = normal scheduling. Needs CAP_SYS_NICE or an '
-            'rtprio limit; a refusal is a diagnostics warning'),
-    Setting('status_rate', 20.0, 'Hz of ~/status'),
-    Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics'),
-    Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline'),
-    Setting('reconnect_period', 0.5, 's between reconnect attempts'),
+            'rtprio limit; a refusal is a diagnostics warning', 0, 99),
+    Setting('status_rate', 20.0, 'Hz of ~/status', 0.1, 1000.0, live=True),
+    Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics', 0.01, 100.0, live=True),
+    Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline',
+            1, 1000),
+    Setting('reconnect_period', 0.5, 's between reconnect attempts', 0.01, 60.0),
     Setting('drive_comm_timeout', 0.3,
             "s written to the drive's own comm-loss timeout at connect (raised to fit the bus, "
-            'and reported); 0 = disable it'),
+            'and reported); 0 = disable it', 0.0, 60.0),
     Setting('apply_commissioning', True,
             "write the profile's bus-control settings at connect when they differ"),
-    Setting('auto_enable', False, 'enable at start-up (motion still needs fresh commands)'),
-    Setting('action_timeout', 2.0, 's to verify enable and reset_fault'),
-    Setting('stop_timeout', 10.0, 's to verify stop and disable (covers the deceleration)'),
+    Setting('auto_enable', False,
+            'enable at start-up and, on a managed node, at each activate (motion still '
+            'needs fresh commands)', live=True),
+    Setting('action_timeout', 2.0, 's to verify enable and reset_fault', 0.01, 600.0, live=True),
+    Setting('stop_timeout', 10.0, 's to verify stop and disable (covers the deceleration)',
+            0.01, 600.0, live=True),
     Setting('frame_id', '', 'header.frame_id of ~/status'),
     Setting('joint_name', '',
             "JointState name of this wheel ('' = the namespace's last part, e.g. "

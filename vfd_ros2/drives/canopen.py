@@ -94,9 +94,9 @@ class CanopenDrive:
         TransportParameter('object_set', '', "CANopen object set of the profile (Kinco: "
                            "manufacturer | ds402); '' = the profile's choice"),
         TransportParameter('velocity_scale', 0.0, "rpm per count of the target/actual velocity "
-                           "objects; 0 = the profile's"),
+                           "objects; 0 = the profile's", 0.0, None),
         TransportParameter('transition_timeout', 1.0, 's a CiA 402 transition may take before '
-                           'it is reported as stuck'),
+                           'it is reported as stuck', 0.01, 60.0),
     )
 
     @classmethod

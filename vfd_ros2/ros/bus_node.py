@@ -21,14 +21,18 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ..control.bus import Bus, BusStatistics, load_bus_config
-from .drive_node import DriveNode
+from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
+from ..control.settings import SETTINGS
+from .drive_node import DriveNode, autostart
 from .executable import run_node
 from .joint_topics import JointCommandBridge
+from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import bus_diagnostic_name
+from .parameters import LiveParameters, check_value, descriptor
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
@@ -51,21 +55,28 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
 
 
 class BusNode(Node):
-    def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
+    def __init__(self, node_name: str = 'bus', managed: bool = False, **kwargs: Any) -> None:
+        """Serve one link and a drive node per drive; ``managed``: see ``ManagedBusNode``."""
         super().__init__(node_name, **kwargs)
         path = self.declare_parameter('config_file', '', ParameterDescriptor(
-            description='bus YAML: the link and its drives')).value
+            description='bus YAML: the link and its drives', read_only=True)).value
         self.config = load_bus_config(path)
         self.bus = Bus(self.config)
-        self.drive_nodes: list[DriveNode] = []
-        for entry in self.config.drives:
-            values = {**self.config.settings, **entry.settings}
-            # use_global_arguments=False: a launch file's __ns/__node remaps are meant
-            # for the bus node, not for the drives' own namespaces from the bus file.
-            self.drive_nodes.append(DriveNode(
-                entry.name, controller=self.bus.controllers[entry.key], own_timers=False,
-                namespace=entry.namespace, context=self.context, use_global_arguments=False,
-                parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+        # The bus thread's rate is the bus node's (live); the drives' nodes show it read-only.
+        rates = {s.name: s for s in SETTINGS if s.name in BUS_KEYS}
+        rate = rates['control_rate']
+        configured = float(self.config.settings.get('control_rate', rate.default))
+        value = self.declare_parameter('control_rate', configured, descriptor(
+            rate.description, rate.default, rate.minimum, rate.maximum, live=True)).value
+        check_value('control_rate', value, rate.minimum, rate.maximum)
+        if value != configured:
+            self.bus.set_rate(float(value))
+        priority = rates['realtime_priority']
+        self.declare_parameter(
+            'realtime_priority', int(self.config.settings.get('realtime_priority', 0)),
+            descriptor(priority.description + ' (set it in the bus file)', priority.default,
+                       priority.minimum, priority.maximum))
+        # Declared before the live-parameter check is installed (it refuses the rest).
         joint_topics = {name: self.declare_parameter(name, default, ParameterDescriptor(
             description=description, read_only=True)).value for name, default, description in (
             ('joint_commands_topic', '', 'sensor_msgs/JointState velocity commands in, by '
@@ -73,22 +84,56 @@ class BusNode(Node):
             ('joint_states_topic', '', "the drives' joint states out, together "
              "(topic_based_ros2_control's joint_states_topic); '' = none"),
             ('joint_states_rate', 50.0, 'Hz of joint_states_topic'))}
+        self.live_parameters = LiveParameters(
+            self, {'control_rate'}, self._apply_parameters,
+            {'control_rate': (rate.minimum, rate.maximum)})
+        self.drive_nodes: list[DriveNode] = []
+        for entry in self.config.drives:
+            values = {**self.config.settings, **entry.settings}
+            # use_global_arguments=False: a launch file's __ns/__node remaps are meant
+            # for the bus node, not for the drives' own namespaces from the bus file.
+            values['control_rate'] = 1.0 / self.bus.period
+            self.drive_nodes.append(DriveNode(
+                entry.name, controller=self.bus.controllers[entry.key], managed=managed,
+                own_timers=False, on_rate_change=self._schedule_publishing,
+                namespace=entry.namespace, context=self.context, use_global_arguments=False,
+                parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
         self.joints = JointCommandBridge(
             self, self.drive_nodes, str(joint_topics['joint_commands_topic']),
             str(joint_topics['joint_states_topic']), float(joint_topics['joint_states_rate']))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        # One timer per distinct rate serves every drive (a timer per drive node and
-        # rate was a wake-up each, most of a many-drive bus_node's CPU).
-        for rate in sorted({node.status_rate for node in self.drive_nodes}):
-            group = [node for node in self.drive_nodes if node.status_rate == rate]
-            self.create_timer(1.0 / rate, lambda group=group: self._publish_status(group))
-        for rate in sorted({node.diagnostics_rate for node in self.drive_nodes} | {1.0}):
-            group = [node for node in self.drive_nodes if node.diagnostics_rate == rate]
-            self.create_timer(1.0 / rate, lambda group=group, rate=rate:
-                              self._publish_diagnostics(group, with_bus=rate == 1.0))
-        self.bus.start()
+        self._publish_timers: list = []
+        self._schedule_publishing()
+        if not managed:
+            self.bus.start()
         self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
                                f'{self.bus.transport.description}')
+
+    def _schedule_publishing(self) -> None:
+        """One timer per distinct rate serves every drive (again after a rate changed).
+
+        A timer per drive node and rate was an executor wake-up each: most of a
+        many-drive bus_node's CPU.
+        """
+        for timer in self._publish_timers:
+            self.destroy_timer(timer)
+        self._publish_timers = []
+        for rate in sorted({node.status_rate for node in self.drive_nodes}):
+            group = [node for node in self.drive_nodes if node.status_rate == rate]
+            self._publish_timers.append(self.create_timer(
+                1.0 / rate, lambda group=group: self._publish_status(group)))
+        for rate in sorted({node.diagnostics_rate for node in self.drive_nodes} | {1.0}):
+            group = [node for node in self.drive_nodes if node.diagnostics_rate == rate]
+            self._publish_timers.append(self.create_timer(
+                1.0 / rate, lambda group=group, rate=rate:
+                self._publish_diagnostics(group, with_bus=rate == 1.0)))
+
+    def _apply_parameters(self, changes: dict[str, Any]) -> None:
+        rate = float(changes['control_rate'])
+        self.bus.set_rate(rate)
+        # What each drive's node shows follows the bus (read-only there: set internally).
+        for node in self.drive_nodes:
+            node.show_bus_rate(rate)
 
     def _publish_status(self, group: list[DriveNode]) -> None:
         for node in group:
@@ -117,6 +162,38 @@ class BusNode(Node):
         super().destroy_node()
 
 
+class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
+    """bus_node as a managed (lifecycle) node (transitions: ``managed.py``).
+
+    Every drive of the bus moves through the transitions together; the drives'
+    own nodes stay plain nodes, gated by the bus node's state.
+    """
+
+    def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
+        super().__init__(node_name, managed=True, **kwargs)
+        self.transitions = DriveTransitions(
+            self.get_logger().error, self.bus.start, self.bus.shutdown,
+            {node.get_fully_qualified_name(): (node.controller, self._gate(node))
+             for node in self.drive_nodes})
+
+    @staticmethod
+    def _gate(node: DriveNode):
+        def allow(allowed: bool) -> None:
+            node.motion_allowed = allowed
+        return allow
+
+
+def make_bus_node(args: list[str] | None = None, **kwargs: Any) -> BusNode:
+    """Return the node the command line asks for: plain, or managed (and autostarted)."""
+    options = parse_options(args)
+    if not options.managed:
+        return BusNode(**kwargs)
+    node = ManagedBusNode(**kwargs)
+    if options.autostart:
+        autostart(node)
+    return node
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('bus_node', BusNode, args,
+    return run_node('bus_node', lambda: make_bus_node(args), args,
                     extra_nodes=lambda node: node.drive_nodes)

@@ -44,7 +44,6 @@ from typing import Any
 
 from geometry_msgs.msg import TransformStamped, Twist, TwistStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
@@ -60,44 +59,55 @@ from ..control.diff_drive import (
 )
 from ..errors import ParameterError
 from .executable import run_node
+from .parameters import LiveParameters, check_value, descriptor
 
-PARAMETERS: tuple[tuple[str, Any, str], ...] = (
-    ('wheel_radius', 0.1, 'm, rolling radius of the drive wheels (> 0)'),
-    ('track_width', 0.5, 'm between the wheel contact points (> 0)'),
+#: name, default, description, minimum, maximum, live (applied at once when set)
+PARAMETERS: tuple[tuple[str, Any, str, float | None, float | None, bool], ...] = (
+    ('wheel_radius', 0.1, 'm, rolling radius of the drive wheels', 0.001, 10.0, False),
+    ('track_width', 0.5, 'm between the wheel contact points', 0.01, 100.0, False),
     ('left_wheel_command_topic', '/agv/left_wheel/drive/velocity_command',
-     'std_msgs/Float64 out: left wheel rad/s'),
+     'std_msgs/Float64 out: left wheel rad/s', None, None, False),
     ('right_wheel_command_topic', '/agv/right_wheel/drive/velocity_command',
-     'std_msgs/Float64 out: right wheel rad/s'),
+     'std_msgs/Float64 out: right wheel rad/s', None, None, False),
     ('left_wheel_status_topic', '/agv/left_wheel/drive/status',
-     'vfd_ros2/DriveStatus in: left wheel measured_velocity'),
+     'vfd_ros2/DriveStatus in: left wheel measured_velocity', None, None, False),
     ('right_wheel_status_topic', '/agv/right_wheel/drive/status',
-     'vfd_ros2/DriveStatus in: right wheel measured_velocity'),
+     'vfd_ros2/DriveStatus in: right wheel measured_velocity', None, None, False),
     ('left_wheel_joint_states_topic', '/agv/left_wheel/joint_states',
-     'sensor_msgs/JointState in: left wheel position (rad), for position_feedback'),
+     'sensor_msgs/JointState in: left wheel position (rad), for position_feedback', None, None,
+     False),
     ('right_wheel_joint_states_topic', '/agv/right_wheel/joint_states',
-     'sensor_msgs/JointState in: right wheel position (rad), for position_feedback'),
+     'sensor_msgs/JointState in: right wheel position (rad), for position_feedback', None,
+     None, False),
     ('position_feedback', True, 'odometry from the wheel positions (JointState) while both '
-     'report them; false: always integrate the measured speeds'),
+     'report them; false: always integrate the measured speeds', None, None, False),
     ('use_stamped_vel', True, "cmd_vel is geometry_msgs/TwistStamped (as Jazzy's "
-     'diff_drive_controller); false: geometry_msgs/Twist'),
+     'diff_drive_controller); false: geometry_msgs/Twist', None, None, False),
     ('invert_left', False, 'negate the left wheel command and measurement (normally false: '
-     'the drive nodes handle mirrored mounting with invert_direction)'),
-    ('invert_right', False, 'negate the right wheel command and measurement'),
-    ('max_linear_velocity', 1.0, 'm/s; 0 = no limit'),
-    ('max_angular_velocity', 2.0, 'rad/s; 0 = no limit'),
-    ('max_linear_acceleration', 1.0, 'm/s^2, also when braking; 0 = no limit'),
-    ('max_angular_acceleration', 3.0, 'rad/s^2, also when braking; 0 = no limit'),
+     'the drive nodes handle mirrored mounting with invert_direction)', None, None, False),
+    ('invert_right', False, 'negate the right wheel command and measurement', None, None,
+     False),
+    ('max_linear_velocity', 1.0, 'm/s; 0 = no limit', 0.0, 100.0, True),
+    ('max_angular_velocity', 2.0, 'rad/s; 0 = no limit', 0.0, 100.0, True),
+    ('max_linear_acceleration', 1.0, 'm/s^2, also when braking; 0 = no limit', 0.0, 1000.0,
+     True),
+    ('max_angular_acceleration', 3.0, 'rad/s^2, also when braking; 0 = no limit', 0.0,
+     1000.0, True),
     ('max_wheel_velocity', 0.0, 'rad/s per wheel, both wheels scaled together (set it to the '
-     "drive nodes' max_velocity); 0 = no limit"),
+     "drive nodes' max_velocity); 0 = no limit", 0.0, 10000.0, True),
     ('cmd_vel_timeout', 0.5, 's without a valid cmd_vel before the target becomes zero '
      '(zero wheel commands keep being published); a stamped cmd_vel older than this is '
-     'rejected'),
-    ('wheel_status_timeout', 0.5, 's after the last wheel status before odometry holds'),
-    ('publish_rate', 50.0, 'Hz of the wheel commands and odom'),
-    ('odom_frame', 'odom', 'header.frame_id of odom (REP 105)'),
-    ('base_frame', 'base_link', 'child_frame_id of odom (REP 105)'),
-    ('publish_tf', False, 'also publish odom_frame -> base_frame on /tf (needs tf2_msgs)'),
+     'rejected', 0.01, 60.0, True),
+    ('wheel_status_timeout', 0.5, 's after the last wheel status before odometry holds',
+     0.01, 60.0, True),
+    ('publish_rate', 50.0, 'Hz of the wheel commands and odom', 0.5, 1000.0, True),
+    ('odom_frame', 'odom', 'header.frame_id of odom (REP 105)', None, None, False),
+    ('base_frame', 'base_link', 'child_frame_id of odom (REP 105)', None, None, False),
+    ('publish_tf', False, 'also publish odom_frame -> base_frame on /tf (needs tf2_msgs)',
+     None, None, False),
 )
+LIMITS = ('max_linear_velocity', 'max_angular_velocity', 'max_linear_acceleration',
+          'max_angular_acceleration', 'max_wheel_velocity')
 
 
 class WheelInput:
@@ -153,8 +163,10 @@ class DiffDriveNode(Node):
     def __init__(self, node_name: str = 'diff_drive', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
         values = {name: self.declare_parameter(
-            name, default, ParameterDescriptor(description=description, read_only=True)).value
-            for name, default, description in PARAMETERS}
+            name, default, descriptor(description, default, low, high, live)).value
+            for name, default, description, low, high, live in PARAMETERS}
+        for name, _, _, low, high, _ in PARAMETERS:
+            check_value(name, values[name], low, high)
         self.kinematics = DiffDriveKinematics(values['wheel_radius'], values['track_width'])
         self.limiter = RateLimiter(self.kinematics, VelocityLimits.from_parameters(
             values['max_linear_velocity'], values['max_angular_velocity'],
@@ -206,11 +218,27 @@ class DiffDriveNode(Node):
                                  lambda msg: self._on_joint(self.left_position, msg), 10)
         self.create_subscription(JointState, values['right_wheel_joint_states_topic'],
                                  lambda msg: self._on_joint(self.right_position, msg), 10)
-        self.create_timer(self.period_s, self._on_tick)
+        self._tick_timer = self.create_timer(self.period_s, self._on_tick)
+        self._values = values
+        self.live_parameters = LiveParameters(
+            self, {name for name, *_, live in PARAMETERS if live}, self._apply_parameters,
+            {name: (low, high) for name, _, _, low, high, _ in PARAMETERS})
         self.get_logger().info(
             f'diff drive: r={self.kinematics.wheel_radius_m} m, '
             f'track={self.kinematics.track_width_m} m, wheels '
             f"{values['left_wheel_command_topic']} / {values['right_wheel_command_topic']}")
+
+    def _apply_parameters(self, changes: dict[str, Any]) -> None:
+        """Apply live limits, timeouts and rate at once (validated first, all or none)."""
+        values = {**self._values, **changes}
+        limits = VelocityLimits.from_parameters(*(float(values[name]) for name in LIMITS))
+        self._values = values
+        self.limiter.limits = limits
+        self.cmd_vel_timeout_s = float(values['cmd_vel_timeout'])
+        self.wheel_status_timeout_s = float(values['wheel_status_timeout'])
+        if 'publish_rate' in changes:
+            self.period_s = 1.0 / float(values['publish_rate'])
+            self._tick_timer.timer_period_ns = round(self.period_s * 1e9)
 
     def _setup_tf(self) -> None:
         try:

@@ -28,8 +28,9 @@ import math
 from typing import Any, Callable
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
@@ -38,6 +39,7 @@ from std_srvs.srv import Trigger
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
+from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
 from ..control.settings import SETTINGS
@@ -48,6 +50,7 @@ from ..profiles import NO_FAULT
 from ..transports import load_transport_class
 from .deferred_service import Deferred, create_deferred_service
 from .executable import run_node
+from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import (
     default_joint_name,
     diagnostic_status,
@@ -56,6 +59,7 @@ from .messages import (
     joint_state_message,
     status_message,
 )
+from .parameters import LiveParameters, check_value, descriptor
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -71,22 +75,38 @@ class DriveNode(Node):
     """ROS face of one drive; all drive logic lives in DriveController."""
 
     def __init__(self, node_name: str = 'drive', controller: DriveController | None = None,
-                 own_timers: bool = True, **kwargs: Any) -> None:
+                 managed: bool = False, own_timers: bool = True,
+                 on_rate_change: Callable[[], None] | None = None, **kwargs: Any) -> None:
         """Make a drive node; with ``controller`` given, a bus runs that controller's loop.
 
+        ``managed``: the loop starts at configure and motion is allowed only while
+        active (``ManagedDriveNode``, or a managed bus's drives); see ``managed.py``.
         ``own_timers=False``: the owner calls ``publish_status`` and collects
         ``diagnostic_status`` on its own timers (a bus serves all its drives from
         one timer per rate instead of two per drive: every timer is an executor
-        wake-up).
+        wake-up) and is told of a changed rate by ``on_rate_change``.
         """
         super().__init__(node_name, **kwargs)
-        values = {s.name: self._declare(s.name, s.default, s.description) for s in SETTINGS}
+        #: velocity commands and ~/enable are taken (a managed node: only while active)
+        self.motion_allowed = not managed
+        # Live: validated and applied at once. A bus's rate and priority belong to the
+        # bus node (read-only here); auto_enable acts at start-up only on a plain node,
+        # at every activate on a managed one.
+        fixed_here = (set() if managed else {'auto_enable'}) | \
+            (set(BUS_KEYS) if controller is not None else set())
+        live = {s.name for s in SETTINGS if s.live and s.name not in fixed_here}
+        values = {s.name: self._declare(s.name, s.default, s.description, s.minimum,
+                                        s.maximum, s.name in live) for s in SETTINGS}
+        for setting in SETTINGS:
+            check_value(setting.name, values[setting.name], setting.minimum, setting.maximum)
         transport_class = load_transport_class(str(values['transport.type']))
         for prefix, settings in (('transport', transport_class.parameters),
                                  ('drive', drive_class_for(transport_class).settings)):
             for setting in settings:
                 name = f'{prefix}.{setting.name}'
-                values[name] = self._declare(name, setting.default, setting.description)
+                values[name] = self._declare(name, setting.default, setting.description,
+                                             setting.minimum, setting.maximum)
+                check_value(name, values[name], setting.minimum, setting.maximum)
         self._owns_controller = controller is None
         self.controller: DriveController = controller or build_controller(values)
         self.profile_name = self.controller.drive.profile.name
@@ -113,23 +133,64 @@ class DriveNode(Node):
                                     SERVICE_QOS)
         self.status_rate = float(values['status_rate'])
         self.diagnostics_rate = float(values['diagnostics_rate'])
+        self._on_rate_change = on_rate_change
+        self._rate_timers = {}
         if own_timers:
             self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-            self.create_timer(1.0 / self.status_rate, self.publish_status)
-            self.create_timer(1.0 / self.diagnostics_rate, self._publish_diagnostics)
-        if self._owns_controller:
+            self._rate_timers = {
+                'status_rate': self.create_timer(1.0 / self.status_rate, self.publish_status),
+                'diagnostics_rate': self.create_timer(1.0 / self.diagnostics_rate,
+                                                      self._publish_diagnostics)}
+        self.live_parameters = LiveParameters(
+            self, live, self._apply_parameters,
+            {s.name: (s.minimum, s.maximum) for s in SETTINGS})
+        if managed:
+            self.controller.intent.enabled = False       # enabled at activate, per policy
+        elif self._owns_controller:
             self.controller.start()
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
 
-    def _declare(self, name: str, default: Any, description: str) -> Any:
+    def _declare(self, name: str, default: Any, description: str,
+                 minimum: float | None = None, maximum: float | None = None,
+                 live: bool = False) -> Any:
         return self.declare_parameter(
-            name, default, ParameterDescriptor(description=description)).value
+            name, default, descriptor(description, default, minimum, maximum, live)).value
+
+    def show_bus_rate(self, rate: float) -> None:
+        """Show the bus thread's new rate in this drive's read-only ``control_rate``."""
+        self._parameters['control_rate'] = Parameter('control_rate', value=float(rate))
+
+    def _apply_parameters(self, changes: dict[str, Any]) -> None:
+        """Apply live parameters at once (all validated first; raises, changing nothing)."""
+        config: dict[str, Any] = {}
+        for name, value in changes.items():
+            if name == 'control_rate':
+                config['cycle_period'] = 1.0 / float(value)
+            elif name == 'auto_enable':
+                config['auto_enable'] = bool(value)
+            elif name in ('max_velocity', 'command_timeout', 'action_timeout', 'stop_timeout'):
+                config[name] = float(value)
+        if config:
+            self.controller.reconfigure(**config)
+        rates = {name: float(changes[name]) for name in ('status_rate', 'diagnostics_rate')
+                 if name in changes}
+        for name, rate in rates.items():
+            setattr(self, name, rate)
+            if name in self._rate_timers:
+                self._rate_timers[name].timer_period_ns = round(1e9 / rate)
+        if rates and self._on_rate_change is not None:
+            self._on_rate_change()          # a bus regroups its drives' timers
 
     # --- topics -----------------------------------------------------------------
 
     def _on_velocity(self, msg: Float64) -> None:
         try:
+            if not self.motion_allowed:
+                self.get_logger().warning(
+                    f'velocity command {msg.data} ignored: the node is not active '
+                    '(lifecycle: configure and activate it)', throttle_duration_sec=2.0)
+                return
             outcome = self.controller.command_velocity(msg.data)
             if outcome is CommandOutcome.REJECTED:
                 self.get_logger().warning(
@@ -212,6 +273,11 @@ class DriveNode(Node):
 
         def handle(_request: Trigger.Request, response: Trigger.Response) -> Any:
             try:
+                if action == 'enable' and not self.motion_allowed:
+                    response.success = False
+                    response.message = 'the node is not active (lifecycle): activate it first'
+                    self.get_logger().warning(f'enable refused: {response.message}')
+                    return response
                 return self._answer(action, (), response, fill)
             except Exception as exc:  # noqa: BLE001
                 response.success, response.message = False, f'{action} failed: {exc}'
@@ -279,5 +345,38 @@ class DriveNode(Node):
         super().destroy_node()
 
 
+class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
+    """drive_node as a managed (lifecycle) node: transitions as in ``managed.py``."""
+
+    def __init__(self, node_name: str = 'drive', **kwargs: Any) -> None:
+        super().__init__(node_name, managed=True, **kwargs)
+        self.transitions = DriveTransitions(
+            self.get_logger().error, self.controller.start, self.controller.shutdown,
+            {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
+
+    def _allow_motion(self, allowed: bool) -> None:
+        self.motion_allowed = allowed
+
+
+def make_drive_node(args: list[str] | None = None, **kwargs: Any) -> DriveNode:
+    """Return the node the command line asks for: plain, or managed (and autostarted)."""
+    options = parse_options(args)
+    if not options.managed:
+        return DriveNode(**kwargs)
+    node = ManagedDriveNode(**kwargs)
+    if options.autostart:
+        autostart(node)
+    return node
+
+
+def autostart(node: LifecycleNode) -> None:
+    """Configure and activate, as a lifecycle manager with autostart would; log a failure."""
+    for transition in (node.trigger_configure, node.trigger_activate):
+        if transition() != TransitionCallbackReturn.SUCCESS:
+            node.get_logger().error('autostart stopped: the node stays in its current state '
+                                    'for a lifecycle manager or operator to retry')
+            return
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('drive_node', DriveNode, args)
+    return run_node('drive_node', lambda: make_drive_node(args), args)

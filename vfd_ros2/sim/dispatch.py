@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from typing import Mapping
 
+from ..transports import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersResponse,

@@ -18,6 +18,7 @@ Parameters:
   silent_unit_ids    drives that do not hear or answer (cable unplugged)
   refused            ["A00.15", ...] registers every drive refuses (illegal address)
   initial_values     ["B04.02=1.0", ...] parameter values at power-up
+  shutdown_grace     s the line stays open after Ctrl-C while drivers still talk
 The line faults, silent_unit_ids and refused can be changed at run time with
 `ros2 param set`, in both directions (an empty list "[]" clears them).
 Services:
@@ -26,6 +27,9 @@ Services:
 
 from __future__ import annotations
 
+import math
+import sys
+import time
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -37,10 +41,14 @@ from vfd_ros2.srv import InjectFault
 from ..errors import VfdError
 from ..profiles import load_profile
 from ..ros.executable import run_node
+from ..ros.parameters import LIVE_NOTE, descriptor
 from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
-from .rtu_line import SimulatedRtuLine
+from .rtu_line import LineFaults, SimulatedRtuLine
 from .tcp_server import SimulatedTcpServer
+
+#: s without a request after which the line counts as quiet at shutdown
+QUIET_LINE = 0.5
 
 
 def parse_initial_values(items: list[str]) -> dict[str, float]:
@@ -64,7 +72,8 @@ class SimDriveNode(Node):
         unit_ids = list(declare('unit_ids', [1], 'slave ids served on the line'))
         baudrate = int(declare('baudrate', 0, "bit/s; 0 = the profile's factory setting"))
         wire_time = bool(declare('emulate_wire_time', False, 'delay replies by wire time'))
-        corrupt = float(declare('corrupt_rate', 0.0, 'fraction of replies corrupted'))
+        corrupt = float(declare('corrupt_rate', 0.0, 'fraction of replies corrupted (RTU)',
+                                0.0, 1.0, live=True))
         initial = parse_initial_values(declare(
             'initial_values', Parameter.Type.STRING_ARRAY,
             'CODE=VALUE parameter values at power-up') or [])
@@ -73,13 +82,18 @@ class SimDriveNode(Node):
         self._declare_list('refused', 'parameter codes every drive answers with "illegal '
                            'address", e.g. ["A00.15"]')
         for name, default, description in (
-                ('late_rate', 0.0, 'fraction of replies sent late'),
+                ('late_rate', 0.0, 'fraction of replies sent late (RTU)'),
                 ('late_delay', [0.12, 0.14], 's [min, max] from the request to a late reply'),
                 ('late_deaf', False, 'a late slave drops the requests it hears meanwhile'),
-                ('wrong_echo_rate', 0.0, 'fraction of write echoes naming another value'),
-                ('trailing_rate', 0.0, 'fraction of replies followed by stray bytes')):
-            declare(name, default, description)
+                ('wrong_echo_rate', 0.0, 'fraction of write echoes naming another value (RTU)'),
+                ('trailing_rate', 0.0, 'fraction of replies followed by stray bytes (RTU)')):
+            declare(name, default, description, *((0.0, 1.0) if name.endswith('_rate')
+                                                  else (None, None)), live=True)
         tcp_port = int(declare('tcp_port', 1502, 'modbus_tcp: port on 127.0.0.1 (0 = any)'))
+        self.shutdown_grace = float(declare(
+            'shutdown_grace', 3.0, 's the line stays open after Ctrl-C/SIGTERM while the host '
+            'still talks (its drivers write their stops); it closes once the line is quiet '
+            f'for {QUIET_LINE:g} s', 0.0, 60.0))
         if transport == 'canopen':
             self.line, where = self._canopen(profile, unit_ids, initial)
         else:
@@ -119,15 +133,19 @@ class SimDriveNode(Node):
         line.start()
         return line, port if transport == 'modbus_rtu' else f'tcp://127.0.0.1:{line.port}'
 
-    def _declare(self, name: str, default: Any, description: str) -> Any:
+    def _declare(self, name: str, default: Any, description: str,
+                 minimum: float | None = None, maximum: float | None = None,
+                 live: bool = False) -> Any:
+        # Only what _apply handles is live; everything else is read-only once running.
         return self.declare_parameter(
-            name, default, ParameterDescriptor(description=description)).value
+            name, default, descriptor(description, default, minimum, maximum, live)).value
 
     def _declare_list(self, name: str, description: str) -> None:
-        # Dynamically typed: "[]" on the command line has no element type, and must
-        # clear the list as well as "[2]" sets it.
-        self.declare_parameter(name, [], ParameterDescriptor(description=description,
-                                                             dynamic_typing=True))
+        # Dynamically typed: "[]" on the command line has no element type (ros2cli sends
+        # a bool array, YAML files may give a string or byte array), and must clear the
+        # list as well as "[2]" sets it.
+        self.declare_parameter(name, [], ParameterDescriptor(
+            description=description + LIVE_NOTE, dynamic_typing=True))
 
     def _on_parameters(self, parameters: list) -> SetParametersResult:
         try:
@@ -138,7 +156,12 @@ class SimDriveNode(Node):
 
     def _apply(self, parameters: list) -> None:
         """Apply run-time settings; raises before changing anything on a bad value."""
-        faults = getattr(self.line, 'faults', None)
+        faults = getattr(self.line, 'faults', None) or LineFaults()    # (inert off RTU)
+        rtu = getattr(self.line, 'faults', None) is not None
+
+        def no_faults(name: str, active: bool) -> None:
+            if active and not rtu:
+                raise ValueError(f'{name}: line faults are simulated on modbus_rtu lines only')
         changes = []
         for parameter in parameters:
             name, value = parameter.name, parameter.value
@@ -148,6 +171,8 @@ class SimDriveNode(Node):
                                                  for d in self.drives])
             elif name == 'refused':
                 codes = [str(code) for code in (value or [])]
+                if codes and not all(hasattr(d, 'refuse') for d in self.drives):
+                    raise ValueError('refused: these simulated drives cannot refuse registers')
                 for drive in self.drives:
                     for code in codes:
                         drive.profile.parameter(code)          # unknown code: refused
@@ -157,16 +182,19 @@ class SimDriveNode(Node):
                 rate = float(value)
                 if not 0.0 <= rate <= 1.0:
                     raise ValueError(f'{name} must be within 0..1, got {rate}')
-                if faults is not None:
-                    changes.append(lambda n=name, r=rate: setattr(faults, n, r))
+                no_faults(name, rate != 0.0)
+                changes.append(lambda n=name, r=rate: setattr(faults, n, r))
             elif name == 'late_delay':
                 low, high = (float(v) for v in value)
-                if not 0.0 <= low <= high:
+                if not 0.0 <= low <= high < math.inf:
                     raise ValueError('late_delay must be [min, max] with 0 <= min <= max')
-                if faults is not None:
-                    changes.append(lambda d=(low, high): setattr(faults, 'late_delay', d))
-            elif name == 'late_deaf' and faults is not None:
+                no_faults(name, False)
+                changes.append(lambda d=(low, high): setattr(faults, 'late_delay', d))
+            elif name == 'late_deaf':
+                no_faults(name, bool(value))
                 changes.append(lambda v=bool(value): setattr(faults, 'late_deaf', v))
+            else:
+                raise ValueError(f'{name} cannot be changed at run time')
         for change in changes:
             change()
 
@@ -185,7 +213,48 @@ class SimDriveNode(Node):
                              'fault cause cleared: a fault reset will now succeed')
         return response
 
+    def _activity(self) -> int:
+        """Return the requests (Modbus) or frames (CANopen) the simulated drives received."""
+        return sum(getattr(d, 'requests', 0) + getattr(d, 'rpdos_received', 0) +
+                   getattr(d, 'heartbeat_events', 0) for d in self.drives)
+
+    def serve_until_quiet(self, grace: float, quiet: float = 0.5) -> float:
+        """Keep serving until the host has been silent for ``quiet`` s (at most ``grace`` s).
+
+        Ctrl-C reaches a launch file's processes in the same instant: the drivers
+        write their stops as they shut down, so the line stays open for them.
+        Returns the seconds waited.
+        """
+        start = time.monotonic()
+        last, changed = self._activity(), start
+        while time.monotonic() - start < grace:
+            time.sleep(0.02)
+            now = self._activity()
+            if now != last:
+                last, changed = now, time.monotonic()
+            elif time.monotonic() - changed >= quiet:
+                break
+        return time.monotonic() - start
+
+    def exit_report(self) -> list[str]:
+        """Return one line per drive: what the host left it doing when the line closed."""
+        return [f'unit {d.unit_id} at exit: run requested '
+                f'{"yes" if getattr(d, "run_requested", False) else "no"}, speed '
+                f'{getattr(d, "speed_rpm", 0.0):.1f} rpm' for d in self.drives]
+
+    def _say(self, text: str) -> None:
+        if self.context.ok():
+            self.get_logger().info(text)
+        else:       # /rosout is gone with the context: the log line still goes out
+            print(f'[{self.get_fully_qualified_name()}] {text}', file=sys.stderr, flush=True)
+
     def destroy_node(self) -> None:
+        if not self.context.ok():
+            # Shut down by a signal (Ctrl-C, launch's SIGINT/SIGTERM), not by a caller.
+            waited = self.serve_until_quiet(self.shutdown_grace, QUIET_LINE)
+            self._say(f'line quiet after {waited:.2f} s: closing it')
+        for line in self.exit_report():
+            self._say(line)
         self.line.stop()
         super().destroy_node()
 

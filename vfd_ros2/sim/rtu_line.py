@@ -61,6 +61,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
+from ..transports import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU

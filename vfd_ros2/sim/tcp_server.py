@@ -12,6 +12,10 @@ import socket
 import threading
 import time
 
+from ..transports import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerSocket
 from pymodbus.pdu import DecodePDU

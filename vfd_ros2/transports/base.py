@@ -17,11 +17,17 @@ from ..errors import TransportError
 
 @dataclass(frozen=True)
 class TransportParameter:
-    """A setting the node declares as ``transport.<name>`` for this transport."""
+    """A setting the node declares as ``transport.<name>`` for this transport.
+
+    ``minimum``/``maximum`` (inclusive; None = unbounded) become the ROS
+    parameter's range, so ``ros2 param describe`` shows it.
+    """
 
     name: str
     default: Any
     description: str
+    minimum: float | None = None
+    maximum: float | None = None
 
 
 @dataclass

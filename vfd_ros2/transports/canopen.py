@@ -337,17 +337,18 @@ class CanopenTransport(Transport):
         TransportParameter('interface', 'socketcan',
                            'python-can interface: socketcan, virtual, ...'),
         TransportParameter('channel', 'can0', 'CAN channel (virtual: any name shared in-process)'),
-        TransportParameter('bitrate', 0, 'bit/s; 0 = leave the interface as configured'),
+        TransportParameter('bitrate', 0, 'bit/s; 0 = leave the interface as configured', 0,
+                           10_000_000),
         TransportParameter('eds_file', '', 'optional EDS/DCF of the nodes (object types)'),
-        TransportParameter('timeout', 0.1, 's per SDO reply'),
+        TransportParameter('timeout', 0.1, 's per SDO reply', 0.001, 10.0),
         TransportParameter('heartbeat_ms', 0, "producer heartbeat written to 0x1017; 0 = the "
-                           "profile's"),
+                           "profile's", 0, 65535),
         TransportParameter('heartbeat_timeout', 0.0, 's without heartbeat before offline; 0 = '
-                           "the profile's factor x heartbeat_ms"),
+                           "the profile's factor x heartbeat_ms", 0.0, 60.0),
         TransportParameter('host_node_id', 127, "the host's node id: its heartbeat (0x700 + id) "
-                           "and the drives' heartbeat consumer (0x1016) use it"),
+                           "and the drives' heartbeat consumer (0x1016) use it", 1, 127),
         TransportParameter('host_heartbeat_ms', 0, 'host heartbeat period; 0 = the control '
-                           'period (10..100 ms)'),
+                           'period (10..100 ms)', 0, 65535),
         TransportParameter('sync_producer', True, "send SYNC (0x080) after each cycle's RPDOs "
                            'where the drives use synchronous PDOs; false when another device '
                            '(or process) on the bus produces SYNC'),

@@ -13,6 +13,10 @@ from __future__ import annotations
 import logging
 from typing import Any, Mapping
 
+from . import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -185,23 +189,27 @@ class _RtuSettings:
 
     parameters = (
         TransportParameter('port', '/dev/ttyUSB0', 'serial device of the RS-485 line'),
-        TransportParameter('baudrate', 0, "bit/s; 0 = the drive's factory setting"),
+        TransportParameter('baudrate', 0, "bit/s; 0 = the drive's factory setting", 0,
+                           10_000_000),
         TransportParameter('parity', '', "N, E or O; empty = the drive's factory setting"),
-        TransportParameter('stopbits', 0, "1 or 2; 0 = the drive's factory setting"),
-        TransportParameter('timeout', 0.1, 'reply timeout in seconds'),
+        TransportParameter('stopbits', 0, "1 or 2; 0 = the drive's factory setting", 0, 2),
+        TransportParameter('timeout', 0.1, 'reply timeout in seconds', 0.001, 10.0),
         TransportParameter('frame_gap', -1.0,
                            's of line silence kept before each request; -1 = t3.5 for the '
-                           'baud rate (3.5 characters, 1.75 ms above 19200 baud), 0 = none'),
+                           'baud rate (3.5 characters, 1.75 ms above 19200 baud), 0 = none',
+                           -1.0, 1.0),
         TransportParameter('late_reply_guard', -1.0,
                            's a unit is not asked again after it timed out, so that a late '
-                           'reply is discarded, not taken for the next one; -1 = timeout'),
+                           'reply is discarded, not taken for the next one; -1 = timeout',
+                           -1.0, 10.0),
         TransportParameter('low_latency', True,
                            'ask the serial driver for low-latency mode (USB adapters hold '
                            'replies for their latency timer otherwise); refusal is reported'),
         TransportParameter('echo', False,
                            'the adapter hears its own transmission: read it back and check it'),
         TransportParameter('broadcast_turnaround', 0.02,
-                           's of silence after a broadcast write, for the slaves to process it'),
+                           's of silence after a broadcast write, for the slaves to process it',
+                           0.0, 1.0),
     )
     port: str
     baudrate: int
@@ -368,8 +376,8 @@ class ModbusTcpTransport(_PymodbusTransport):
 
     parameters = (
         TransportParameter('host', '127.0.0.1', "IP address of the drive's Modbus TCP card"),
-        TransportParameter('port', 502, 'TCP port'),
-        TransportParameter('timeout', 0.2, 'reply timeout in seconds'),
+        TransportParameter('port', 502, 'TCP port', 1, 65535),
+        TransportParameter('timeout', 0.2, 'reply timeout in seconds', 0.001, 10.0),
     )
 
     def __init__(self, host: str, port: int = 502, timeout: float = 0.2) -> None:

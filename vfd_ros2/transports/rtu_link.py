@@ -49,6 +49,10 @@ import threading
 import time
 from typing import Callable
 
+from . import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
+
+# isort: split
+
 import serial
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU

@@ -1,0 +1,124 @@
+"""Ctrl-C on a launch: every process gets SIGINT at once, and the stop still reaches the drive.
+
+ros2 launch signals all its processes in the same instant. Here the simulator
+and the drive node run as the real executables (as a launch starts them), both
+get SIGINT together (the simulator first), and what the simulated drive was
+left doing when its line closed is read from the simulator's exit report.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+import uuid
+from dataclasses import replace
+
+import pytest
+from std_msgs.msg import Float64
+
+from harness import wait_for
+from vfd_ros2.apps.bringup import sim_agv, sim_agv_bus, sim_wheels, write_bus_file
+from vfd_ros2.msg import DriveStatus
+
+
+def start(specs, workdir):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    processes = []
+    for spec in specs:
+        params = spec.write_params_file(workdir)
+        log = workdir / f'{spec.executable}.log'
+        with open(log, 'w') as out:
+            processes.append((subprocess.Popen(spec.command(params), env=env, stdout=out,
+                                               stderr=subprocess.STDOUT), log))
+    return processes
+
+
+def interrupt_all(processes) -> dict[str, str]:
+    """SIGINT to every process in the same instant; their logs once they have exited."""
+    for process, _ in processes:
+        process.send_signal(signal.SIGINT)
+    logs = {}
+    for process, log in processes:
+        try:
+            process.wait(timeout=15.0)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+            pytest.fail(f'{log.name} did not exit after SIGINT')
+        logs[log.stem] = log.read_text()
+    return logs
+
+
+def run_then_interrupt(ros_context, tmp_path, specs, drives: list[str], command) -> dict:
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from vfd_ros2.ros.executable import spin_in_background
+    tester = Node('tester', context=ros_context)
+    statuses = {d: [] for d in drives}
+    for drive in drives:
+        tester.create_subscription(DriveStatus, f'{drive}/status', statuses[drive].append, 10)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(tester)
+    spin_in_background(executor, ros_context)
+    processes = start(specs, tmp_path)
+    try:
+        def running():
+            command(tester)
+            return all(s and s[-1].running and abs(s[-1].measured_velocity) > 0.5
+                       for s in statuses.values())
+        wait_for(running, 40.0, 'every wheel running', period=0.05)
+    except AssertionError:
+        logs = interrupt_all(processes)
+        raise AssertionError(f'not running: {logs}') from None
+    finally:
+        executor.remove_node(tester)
+    logs = interrupt_all(processes)          # commands were streaming until now
+    tester.destroy_node()
+    return logs
+
+
+def test_ctrl_c_on_the_demo_stops_the_drive_before_the_line_closes(ros_context, tmp_path):
+    namespace = f'/c{uuid.uuid4().hex[:6]}'
+    sim, drive = sim_wheels(directory=str(tmp_path / 'lines'), wheels=('left_wheel',))
+    drive = replace(drive, namespace=namespace,
+                    parameters={**drive.parameters, 'auto_enable': True})
+    sim = replace(sim, namespace=namespace)
+    publisher = []
+
+    def command(tester):
+        if not publisher:
+            publisher.append(tester.create_publisher(
+                Float64, f'{namespace}/drive/velocity_command', 10))
+        publisher[0].publish(Float64(data=1.0))
+    logs = run_then_interrupt(ros_context, tmp_path, [sim, drive], [f'{namespace}/drive'],
+                              command)
+    assert 'unit 1 at exit: run requested no' in logs['sim_drive'], logs['sim_drive']
+    assert 'could not stop' not in logs['drive_node'], logs['drive_node']
+    assert '\x1b[' not in logs['drive_node']           # piped logs: no ANSI codes
+
+
+@pytest.mark.timeout(180)
+def test_ctrl_c_on_the_sim_agv_stops_both_drives_on_the_bus(ros_context, tmp_path):
+    from geometry_msgs.msg import TwistStamped
+    directory = str(tmp_path / 'lines')
+    write_bus_file(sim_agv_bus(directory), directory)
+    specs = sim_agv(directory=directory)
+    publisher = []
+
+    def command(tester):
+        if not publisher:
+            publisher.append(tester.create_publisher(TwistStamped, '/agv/cmd_vel', 10))
+        msg = TwistStamped()                # diff_drive's default (use_stamped_vel)
+        msg.header.stamp = tester.get_clock().now().to_msg()
+        msg.twist.linear.x = 0.2
+        publisher[0].publish(msg)
+    start_time = time.monotonic()
+    logs = run_then_interrupt(ros_context, tmp_path, specs,
+                              ['/agv/left_wheel/drive', '/agv/right_wheel/drive'], command)
+    for unit in (1, 2):
+        assert f'unit {unit} at exit: run requested no' in logs['sim_drive'], logs['sim_drive']
+    assert 'could not stop' not in logs['bus_node'], logs['bus_node']
+    assert time.monotonic() - start_time < 120

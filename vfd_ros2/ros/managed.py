@@ -1,0 +1,206 @@
+"""Managed (lifecycle) operation of drive and bus nodes: what each transition does.
+
+    unconfigured --configure--> inactive: the link is opened and every drive
+        commissioned (online); nothing may move (velocity commands are ignored,
+        ~/enable is refused)
+    inactive --activate--> active: motion allowed; drives with auto_enable are
+        enabled (the others wait for ~/enable)
+    active --deactivate--> inactive: motion refused again, every drive stopped
+        (verified) and held
+    inactive --cleanup--> unconfigured: the loop ends: stop written, link closed
+    any --shutdown--> finalized: stop written first, then the link closed
+
+A transition that cannot be done (a drive does not answer at configure, an
+enable is refused) fails with the reason logged and the state unchanged; an
+unexpected error (a stop that is not verified, an exception) goes to
+ErrorProcessing, which stops the loop (stop written, link closed) and returns
+to unconfigured. Transitions block the executor for at most the drive's
+action or stop timeout.
+
+The executables take ``--managed`` (a lifecycle node; plain is the default)
+and ``--autostart`` (configure and activate at start, as a lifecycle manager
+with autostart would).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from concurrent.futures import Future
+from typing import Callable, Iterable, Mapping
+
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.utilities import remove_ros_args
+
+from ..control.controller import DriveController
+from ..control.state import ActionResult
+
+SUCCESS = TransitionCallbackReturn.SUCCESS
+FAILURE = TransitionCallbackReturn.FAILURE
+ERROR = TransitionCallbackReturn.ERROR
+
+
+def parse_options(args: list[str] | None) -> argparse.Namespace:
+    """Return --managed / --autostart from the command line (ROS arguments removed)."""
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument('--managed', action='store_true',
+                        help='run as a managed (lifecycle) node')
+    parser.add_argument('--autostart', action='store_true',
+                        help='with --managed: configure and activate at start')
+    options, _ = parser.parse_known_args(remove_ros_args(args)[1:] if args is not None
+                                         else remove_ros_args()[1:])
+    return options
+
+
+def wait_online(controllers: Mapping[str, DriveController], timeout: float) -> dict[str, str]:
+    """Wait until every controller's drive is online; return {name: why} of the others."""
+    deadline = time.monotonic() + timeout
+    while True:
+        offline = {name: c.state.link_error or c.link.error or 'no reply yet'
+                   for name, c in controllers.items() if not c.state.online}
+        if not offline or time.monotonic() > deadline:
+            return offline
+        time.sleep(0.01)
+
+
+def results(futures: Mapping[str, Future], timeout: float) -> dict[str, ActionResult]:
+    """Wait for the controllers' action results (concurrent futures, not the executor)."""
+    deadline = time.monotonic() + timeout
+    done = {}
+    for name, future in futures.items():
+        try:
+            done[name] = future.result(max(0.0, deadline - time.monotonic()))
+        except Exception as exc:  # noqa: BLE001 - a timeout is a failed action
+            done[name] = ActionResult(False, f'no result: {exc!r}')
+    return done
+
+
+def failures(done: Mapping[str, ActionResult]) -> str:
+    return '; '.join(f'{name}: {r.message}' for name, r in done.items() if not r.success)
+
+
+class DriveTransitions:
+    """The transitions of one or several drives on one loop (a drive's or a bus's)."""
+
+    def __init__(self, log: Callable[[str], None], start: Callable[[], None],
+                 stop_loop: Callable[[], None],
+                 gates: Mapping[str, tuple[DriveController, Callable[[bool], None]]]) -> None:
+        self._log = log
+        self._start = start
+        self._stop_loop = stop_loop
+        self._gates = gates
+        self.last_error = ''
+
+    def _fail(self, transition: str, reason: str, code: TransitionCallbackReturn
+              ) -> TransitionCallbackReturn:
+        self.last_error = f'{transition} failed: {reason}'
+        self._log(self.last_error)
+        return code
+
+    def _allow(self, allowed: bool, names: Iterable[str] | None = None) -> None:
+        for name in names if names is not None else self._gates:
+            self._gates[name][1](allowed)
+
+    def _close(self) -> None:
+        self._stop_loop()            # the loop's end writes the stop, then closes the link
+        for controller, _ in self._gates.values():
+            controller.mark_closed()  # ~/status says offline, not the last cycle's state
+
+    def configure(self) -> TransitionCallbackReturn:
+        self._allow(False)
+        controllers = {name: gate[0] for name, gate in self._gates.items()}
+        for controller in controllers.values():
+            controller.intent.enabled = False      # nothing moves before activate
+        self._start()
+        timeout = max(max(c.config.action_timeout for c in controllers.values()), 1.0) + \
+            max(c.addressing_interval() for c in controllers.values())
+        offline = wait_online(controllers, timeout)
+        if offline:
+            self._close()
+            return self._fail('configure', 'drive(s) not online: ' + '; '.join(
+                f'{name}: {why}' for name, why in offline.items()), FAILURE)
+        return SUCCESS
+
+    def activate(self) -> TransitionCallbackReturn:
+        self._allow(True)
+        enabling = {name: gate[0] for name, gate in self._gates.items()
+                    if gate[0].config.auto_enable}
+        done = results({name: c.submit('enable') for name, c in enabling.items()},
+                       max((c.config.action_timeout for c in enabling.values()), default=0)
+                       * 2 + 1.0)
+        problem = failures(done)
+        if problem:
+            self._hold()
+            return self._fail('activate', f'enable refused: {problem}', FAILURE)
+        return SUCCESS
+
+    def _hold(self) -> dict[str, ActionResult]:
+        self._allow(False)
+        controllers = {name: gate[0] for name, gate in self._gates.items()}
+        return results({name: c.submit('stop') for name, c in controllers.items()},
+                       max(c.config.stop_timeout for c in controllers.values()) + 1.0)
+
+    def deactivate(self) -> TransitionCallbackReturn:
+        problem = failures(self._hold())
+        if problem:
+            return self._fail('deactivate', f'stop not verified: {problem}', ERROR)
+        return SUCCESS
+
+    def cleanup(self) -> TransitionCallbackReturn:
+        self._allow(False)
+        self._close()
+        return SUCCESS
+
+    def shutdown(self) -> TransitionCallbackReturn:
+        return self.cleanup()
+
+    def error(self) -> TransitionCallbackReturn:
+        self._log(f'error processing ({self.last_error or "unexpected error"}): '
+                  'stop written, link closed')
+        return self.cleanup()
+
+
+class ManagedTransitions:
+    """The lifecycle callbacks of a managed node, on its ``self.transitions``.
+
+    Mixed in before the node class and ``LifecycleNode``: each callback runs
+    the transition, logs an exception as the reason for ErrorProcessing (rclpy
+    would turn it into ERROR silently).
+    """
+
+    transitions: DriveTransitions
+
+    def _transition(self, name: str) -> TransitionCallbackReturn:
+        try:
+            result = getattr(self.transitions, name)()
+        except Exception as exc:  # noqa: BLE001 - an error goes to ErrorProcessing, logged
+            self.transitions.last_error = f'{name} failed: {exc!r}'
+            self.get_logger().error(self.transitions.last_error)
+            return ERROR
+        if result == SUCCESS:
+            self.get_logger().info(f'{name}: done')
+        return result
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('configure')
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('activate')
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('deactivate')
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('cleanup')
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('shutdown')
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._transition('error')
+
+    def destroy_node(self) -> None:
+        super().destroy_node()          # the node's own: stop written, link closed
+        # rclpy's LifecycleNode leaves its state machine (which holds the rcl node, and
+        # with it the DDS participant) alive: release it too.
+        self._state_machine.destroy_when_not_in_use()

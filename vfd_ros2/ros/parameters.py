@@ -1,0 +1,100 @@
+"""ROS parameter descriptors that tell the truth: description, range, read-only or live.
+
+``ros2 param describe`` shows what these build. A parameter that cannot change
+while the node runs is declared ``read_only`` (rclpy then refuses a set with
+that reason); a live one carries its range, and the node's set-parameters
+callback validates and applies it (``LiveParameters``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Iterable
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from ..errors import VfdError
+
+LIVE_NOTE = ' [live: applied at once]'
+
+
+def descriptor(description: str, default: Any, minimum: float | None = None,
+               maximum: float | None = None, live: bool = False) -> ParameterDescriptor:
+    """Return a descriptor: read-only unless ``live``, with the range where there is one."""
+    text = description + (LIVE_NOTE if live else '')
+    result = ParameterDescriptor(description=text, read_only=not live)
+    if minimum is not None or maximum is not None:
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            result.integer_range = [IntegerRange(
+                from_value=int(minimum if minimum is not None else -2 ** 63),
+                to_value=int(maximum if maximum is not None else 2 ** 63 - 1), step=0)]
+        elif isinstance(default, float):
+            result.floating_point_range = [FloatingPointRange(
+                from_value=float(minimum if minimum is not None else -math.inf),
+                to_value=float(maximum if maximum is not None else math.inf), step=0.0)]
+    return result
+
+
+def check_value(name: str, value: Any, minimum: float | None = None,
+                maximum: float | None = None) -> None:
+    """Raise ValueError naming ``name`` for NaN, inf or a value out of range."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    if not math.isfinite(value):
+        raise ValueError(f'{name} must be a finite number, got {value}')
+    if minimum is not None and value < minimum:
+        raise ValueError(f'{name} must be >= {minimum:g}, got {value:g}')
+    if maximum is not None and value > maximum:
+        raise ValueError(f'{name} must be <= {maximum:g}, got {value:g}')
+
+
+class LiveParameters:
+    """The set-parameters callback of a node: validate everything, then apply, or refuse.
+
+    ``apply`` receives ``{name: value}`` of the live parameters in one request
+    and must raise (ValueError, VfdError) before changing anything when a value
+    is bad. A parameter this object does not know as live is refused, so a set
+    can never be reported successful and ignored.
+    """
+
+    def __init__(self, node: Node, live: Iterable[str],
+                 apply: Callable[[dict[str, Any]], None],
+                 ranges: dict[str, tuple[float | None, float | None]] | None = None) -> None:
+        self.node = node
+        self.live = set(live)
+        self.ranges = ranges or {}
+        self._apply = apply
+        node.add_on_set_parameters_callback(self)
+
+    def __call__(self, parameters: list[Parameter]) -> SetParametersResult:
+        changes: dict[str, Any] = {}
+        try:
+            for parameter in parameters:
+                if parameter.name not in self.live:
+                    return SetParametersResult(
+                        successful=False,
+                        reason=f'{parameter.name} cannot be changed at run time')
+                check_value(parameter.name, parameter.value,
+                            *self.ranges.get(parameter.name, (None, None)))
+                changes[parameter.name] = parameter.value
+            if changes:
+                self._apply(changes)
+        except (ValueError, TypeError, VfdError) as exc:
+            self.node.get_logger().warning(f'parameter change refused: {exc}')
+            return SetParametersResult(successful=False, reason=str(exc))
+        except Exception as exc:  # noqa: BLE001 - a bad value must not crash the node
+            self.node.get_logger().error(f'parameter change failed: {exc!r}')
+            return SetParametersResult(successful=False, reason=f'internal error: {exc!r}')
+        if changes:
+            self.node.get_logger().info(
+                'parameters applied: ' + ', '.join(f'{k}={v}' for k, v in changes.items()))
+        return SetParametersResult(successful=True)
