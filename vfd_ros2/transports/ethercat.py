@@ -49,6 +49,7 @@ from ..protocol.ethercat import (
     al_status_text,
     sdo_abort_text,
 )
+from .base import Transport, TransportParameter
 from .netns import run_in_namespace
 
 try:
@@ -691,3 +692,368 @@ class EthercatSegment:
             except pysoem.Emergency as exc:            # without a callback pysoem raises it
                 slave._on_emergency(exc)
                 return None
+
+
+# -- the transport plugin: one segment shared by the drives on it ------------------------------
+
+
+@dataclass(frozen=True)
+class SlaveSetup:
+    """What a drive needs of its slave, given at attach (plain values, no drive knowledge).
+
+    ``position`` is 1-based in line order, as SOEM and configuration tools number
+    slaves. Identity values of None are not checked; ``device_name`` is checked
+    only when given. ``startup`` SDO writes happen at PRE-OP, after the PDO
+    assignment and before SAFE-OP; ``safe_outputs`` are sent while no drive owns
+    the slave (closed, lost), so a returning slave never sees a stale command.
+    """
+
+    position: int
+    pdos: PdoConfiguration
+    output_size: int
+    input_size: int
+    safe_outputs: bytes
+    vendor_id: int | None = None
+    product_code: int | None = None
+    device_name: str = ''
+    fixed_mapping: bool = False
+    startup: tuple[tuple[int, int, bytes], ...] = ()
+    sync_cycles_s: tuple[float, ...] = ()      # cycle times the slave accepts (empty: any)
+    dc: bool = True                            # the slave supports DC SYNC0
+    free_run: bool = True
+
+
+class EthercatTransport(Transport):
+    """``transport.type: ethercat``: one EtherCAT segment (one NIC) and its slaves.
+
+    Every drive of a bus shares one instance, hence one ``EthercatSegment`` with
+    one process-data thread. The segment is opened (and every attached slave
+    identified, mapped and brought to OP) by the first ``open_slave`` and closed
+    when the last slave is closed; a slave lost and found again meanwhile is
+    brought back by the segment's supervisor. ``unit`` = slave position, 1-based.
+    """
+
+    parameters = (
+        TransportParameter('interface', '', 'network interface of the EtherCAT segment (e.g. '
+                           'enp3s0); raw-socket rights needed (root or CAP_NET_RAW)'),
+        TransportParameter('namespace', '', 'network namespace of the interface (tests); '
+                           "'' = the node's own"),
+        TransportParameter('cycle_time', 0.002, 's per process-data cycle (one thread per '
+                           'segment)'),
+        TransportParameter('sync_mode', 'free_run', 'free_run (slaves on their own clock) or dc '
+                           '(distributed clocks, SYNC0 every cycle_time)'),
+        TransportParameter('state_timeout', 2.0, 's each AL state change may take'),
+        TransportParameter('sdo_timeout', 0.7, 's each SDO exchange may take'),
+        TransportParameter('stale_after', 0.1, 's without fresh inputs from a slave before it '
+                           'counts as silent'),
+    )
+    shared_by_drives = True
+
+    def __init__(self, settings: SegmentSettings, stale_after: float = 0.1) -> None:
+        super().__init__()
+        self.settings = settings
+        self.stale_after = stale_after
+        self.timeout = settings.sdo_timeout_s
+        self._setups: dict[int, SlaveSetup] = {}
+        self._watchdogs: dict[int, float] = {}
+        self._errors: dict[int, str] = {}          # position -> why it cannot be used
+        self._open_units: set[int] = set()
+        self._segment: EthercatSegment | None = None
+        self._lock = threading.RLock()
+
+    @classmethod
+    def from_settings(cls, settings: Any) -> 'EthercatTransport':
+        interface = str(settings.get('interface', '') or '')
+        if not interface:
+            raise TransportError('transport.interface is empty: name the network interface of '
+                                 'the EtherCAT segment (e.g. enp3s0)')
+        try:
+            mode = SyncMode(str(settings.get('sync_mode', 'free_run')))
+        except ValueError:
+            raise TransportError(f'transport.sync_mode {settings.get("sync_mode")!r}: use '
+                                 'free_run or dc') from None
+        cycle = float(settings.get('cycle_time', 0.002))
+        if not 0.0001 <= cycle <= 0.1:
+            raise TransportError(f'transport.cycle_time {cycle:g} s: use 0.0001..0.1 s')
+        stale = float(settings.get('stale_after', 0.1))
+        if stale < 2 * cycle:
+            raise TransportError(f'transport.stale_after {stale:g} s must be at least two '
+                                 f'cycles ({2 * cycle:g} s)')
+        return cls(SegmentSettings(
+            interface=interface, namespace=str(settings.get('namespace', '') or '') or None,
+            cycle_time_s=cycle, sync_mode=mode,
+            state_timeout_s=float(settings.get('state_timeout', 2.0)),
+            sdo_timeout_s=float(settings.get('sdo_timeout', 0.7))), stale)
+
+    @property
+    def description(self) -> str:
+        where = f'@{self.settings.namespace}' if self.settings.namespace else ''
+        return f'ethercat:{self.settings.interface}{where}'
+
+    @property
+    def link_notes(self) -> tuple[str, ...]:
+        segment = self._segment
+        if segment is None:
+            return ()
+        stats = segment.stats()
+        notes = []
+        if stats.missed_cycles:
+            notes.append(f'{stats.missed_cycles} missed process-data cycles of '
+                         f'{stats.cycles} ({self.settings.cycle_time_s * 1000:g} ms)')
+        return tuple(notes)
+
+    def exchange_seconds(self, request_bytes: int, reply_bytes: int) -> float:
+        return self.settings.cycle_time_s
+
+    def failed_exchange_seconds(self) -> float:
+        return self.settings.sdo_timeout_s
+
+    # -- drives attach their slaves before the segment opens --------------------------------
+
+    def attach(self, setup: SlaveSetup) -> None:
+        """Register what the drive at ``setup.position`` needs (before the segment opens)."""
+        if setup.position < 1:
+            raise TransportError(f'EtherCAT slave position {setup.position}: positions start '
+                                 'at 1 (the first slave after the master)')
+        with self._lock:
+            if setup.position in self._setups:
+                raise TransportError(f'EtherCAT slave {setup.position} is attached twice')
+            self._setups[setup.position] = setup
+
+    def set_watchdog(self, unit: int, seconds: float) -> None:
+        """Ask for the SM (process-data) watchdog of one slave; 0 = off. Set at open."""
+        with self._lock:
+            self._watchdogs[unit] = seconds
+
+    def watchdog(self, unit: int) -> float | None:
+        """Return the SM watchdog time the slave holds now (s; None: unknown)."""
+        slave = self._slave(unit, check=False)
+        if slave is None:
+            return None
+        try:
+            with self._segment._mailbox_lock:              # type: ignore[union-attr]
+                return float(slave._soem.get_watchdog('processdata')) / 1000.0
+        except Exception:  # noqa: BLE001 - pysoem raises several kinds here
+            return None
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the segment: identify, map and start every attached slave (idempotent)."""
+        with self._lock:
+            if self._segment is not None:
+                return
+            self._errors.clear()
+            watchdogs = [s for s in self._watchdogs.values()]
+            active = [s for s in watchdogs if s > 0]
+            watchdog = min(active) if active else (0.0 if watchdogs else None)
+            settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': watchdog})
+            segment = EthercatSegment(settings, on_slave_lost=self._on_lost)
+            try:
+                identities = segment.open()
+                for position, setup in sorted(self._setups.items()):
+                    self._prepare(segment, identities, setup)
+                self._check_sync(segment)
+                try:
+                    segment.start()
+                except AlStateError as exc:
+                    # One slave below OP must not keep the others from running: the
+                    # supervisor keeps asking it, its drive reports the AL status code.
+                    log.warning('EtherCAT %s: %s', self.settings.interface, exc)
+            except BaseException as exc:
+                segment.close()
+                self.count(None, 'connect_failures')
+                if isinstance(exc, (TransportError, ProtocolException)):
+                    raise
+                if isinstance(exc, Exception):
+                    raise EthercatError(f'{self.description}: {exc}') from exc
+                raise
+            self._segment = segment
+            for position, setup in self._setups.items():
+                if position not in self._errors:
+                    try:
+                        segment.slave(position - 1).set_outputs(setup.safe_outputs)
+                    except ValueError as exc:       # mapped other than the drive expects
+                        self._errors[position] = f'slave {position}: {exc}'
+
+    def _prepare(self, segment: EthercatSegment, identities: list[SlaveIdentity],
+                 setup: SlaveSetup) -> None:
+        position = setup.position
+        if position > len(identities):
+            found = ', '.join(f'{i.position + 1}: {i.name}' for i in identities)
+            self._errors[position] = (f'no EtherCAT slave at position {position}: the segment '
+                                      f'on {self.settings.interface} has {len(identities)} '
+                                      f'({found})')
+            return
+        ident = identities[position - 1]
+        problem = identity_mismatch(ident, setup)
+        if problem:
+            self._errors[position] = problem
+            return
+        try:
+            if not setup.fixed_mapping:
+                segment.configure_pdos(position - 1, setup.pdos)
+            else:
+                segment.configure_pdos(position - 1, PdoConfiguration(setup.pdos.rx,
+                                                                      setup.pdos.tx))
+            slave = segment.slave(position - 1)
+            for index, subindex, data in setup.startup:
+                slave.sdo_write(index, subindex, data)
+        except (TransportError, ProtocolException) as exc:
+            self._errors[position] = f'slave {position} set-up at PRE-OP failed: {exc}'
+
+    def _check_sync(self, segment: EthercatSegment) -> None:
+        cycle = self.settings.cycle_time_s
+        for position, setup in self._setups.items():
+            if position in self._errors:
+                continue
+            if self.settings.sync_mode is SyncMode.DC and not setup.dc:
+                self._errors[position] = (f'slave {position} has no DC sync (free run only): '
+                                          'set transport.sync_mode free_run')
+            elif self.settings.sync_mode is SyncMode.FREE_RUN and not setup.free_run:
+                self._errors[position] = (f'slave {position} does not run free: set '
+                                          'transport.sync_mode dc')
+            elif setup.sync_cycles_s and not any(abs(cycle - c) < 1e-9
+                                                 for c in setup.sync_cycles_s):
+                allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
+                self._errors[position] = (f'slave {position} accepts cycle times {allowed}, not '
+                                          f'transport.cycle_time {cycle * 1e6:g} us')
+
+    def _on_lost(self, position: int) -> None:
+        # A lost slave gets its safe outputs, so that it never sees the last command
+        # again when it comes back before its drive has reconnected.
+        setup = self._setups.get(position + 1)
+        segment = self._segment
+        if setup is not None and segment is not None:
+            try:
+                segment.slave(position).set_outputs(setup.safe_outputs)
+            except ValueError:
+                pass
+
+    def open_slave(self, unit: int) -> None:
+        """Open the segment if needed and check that slave ``unit`` is usable (in OP)."""
+        self.open()
+        with self._lock:
+            error = self._errors.get(unit)
+        if error:
+            raise EthercatError(error)
+        slave = self._slave(unit)
+        slave.read_state()
+        if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
+            raise AlStateError(slave.position, ALState.OP, slave.al_status,
+                               slave.al_status_code)
+        with self._lock:
+            self._open_units.add(unit)
+
+    def close_slave(self, unit: int) -> None:
+        """Hand slave ``unit`` its safe outputs; close the segment with the last slave."""
+        with self._lock:
+            self._open_units.discard(unit)
+            setup = self._setups.get(unit)
+            segment = self._segment
+            if segment is not None and setup is not None and unit <= len(segment.slaves):
+                try:
+                    segment.slave(unit - 1).set_outputs(setup.safe_outputs)
+                except ValueError:
+                    pass
+            if not self._open_units:
+                self.close()
+
+    def close(self) -> None:
+        with self._lock:
+            segment, self._segment = self._segment, None
+            self._open_units.clear()
+        if segment is not None:
+            segment.close()
+
+    # -- per-slave data ---------------------------------------------------------------------
+
+    def _slave(self, unit: int, check: bool = True) -> Any:
+        segment = self._segment
+        if segment is None:
+            if not check:
+                return None
+            raise EthercatError(f'{self.description} is not open')
+        if not 1 <= unit <= len(segment.slaves):
+            if not check:
+                return None
+            raise EthercatError(f'no EtherCAT slave at position {unit}')
+        return segment.slave(unit - 1)
+
+    def write_outputs(self, unit: int, data: bytes) -> None:
+        """Send ``data`` as slave ``unit``'s RxPDO bytes from the next cycle on."""
+        slave = self._slave(unit)
+        try:
+            slave.set_outputs(data)
+        except ValueError as exc:
+            raise EthercatError(str(exc)) from exc
+
+    def read_inputs(self, unit: int) -> bytes:
+        """Return slave ``unit``'s TxPDO bytes; TransportError if lost, below OP or stale."""
+        slave = self._slave(unit)
+        segment = self._segment
+        if segment is not None:
+            stats = segment.stats()
+            self.stats.transactions = stats.cycles
+            self.stats.bad_frames = stats.wkc_errors
+            self.stats.timeouts = stats.lost_frames
+        self.count_unit(unit, 'transactions')
+        age = time.monotonic() - slave.inputs_time
+        if slave.lost:
+            self.count_unit(unit, 'timeouts')
+            raise CommTimeout(f'EtherCAT slave {unit} lost (no answer on '
+                              f'{self.settings.interface})')
+        if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
+            self.count_unit(unit, 'exceptions')
+            raise EthercatError(f'EtherCAT slave {unit} left OP: it is '
+                                f'{al_state_name(slave.al_status)}, AL status code '
+                                f'0x{slave.al_status_code:04X} '
+                                f'({al_status_text(slave.al_status_code)})')
+        if age > self.stale_after:
+            self.count_unit(unit, 'timeouts')
+            raise CommTimeout(f'EtherCAT slave {unit}: no process data for {age:.2f} s '
+                              f'(link down or working-counter errors on '
+                              f'{self.settings.interface})')
+        return slave.inputs()
+
+    def count_unit(self, unit: int, counter: str) -> None:
+        unit_stats = self.stats_for(unit)
+        setattr(unit_stats, counter, getattr(unit_stats, counter) + 1)
+
+    def sdo_read(self, unit: int, index: int, subindex: int) -> bytes:
+        try:
+            return self._slave(unit).sdo_read(index, subindex)
+        except (TransportError, ProtocolException):
+            self.count_unit(unit, 'exceptions')
+            raise
+
+    def sdo_write(self, unit: int, index: int, subindex: int, data: bytes) -> None:
+        try:
+            self._slave(unit).sdo_write(index, subindex, data)
+        except (TransportError, ProtocolException):
+            self.count_unit(unit, 'exceptions')
+            raise
+
+    def take_emergencies(self, unit: int) -> list[Emergency]:
+        slave = self._slave(unit, check=False)
+        return slave.take_emergencies() if slave is not None else []
+
+    def identity(self, unit: int) -> SlaveIdentity | None:
+        slave = self._slave(unit, check=False)
+        return slave.identity if slave is not None else None
+
+
+def identity_mismatch(ident: SlaveIdentity, setup: SlaveSetup) -> str:
+    """Say why a slave is not the one a drive expects ('' when it is)."""
+    where = f'EtherCAT slave {setup.position} ({ident.name!r})'
+    wrong = []
+    if setup.vendor_id is not None and ident.vendor_id != setup.vendor_id:
+        wrong.append(f'vendor 0x{ident.vendor_id:X}, not 0x{setup.vendor_id:X}')
+    if setup.product_code is not None and ident.product_code != setup.product_code:
+        wrong.append(f'product 0x{ident.product_code:X}, not 0x{setup.product_code:X}')
+    if setup.vendor_id is None and setup.product_code is None and setup.device_name and \
+            ident.name != setup.device_name:
+        wrong.append(f'device name {ident.name!r}, not {setup.device_name!r}')
+    if not wrong:
+        return ''
+    return f'{where} is not the drive of the profile: {"; ".join(wrong)}'

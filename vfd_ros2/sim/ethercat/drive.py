@@ -309,7 +309,8 @@ class Cia402VelocityDrive:
         return 0
 
     def _function_code_write(self, entry: Entry, value: Any) -> int:
-        address, data = int(value) >> 16, int(value) & 0xFFFF
+        # the address's MSB asks for a RAM-only write (IMO manual L2098): same value here
+        address, data = (int(value) >> 16) & 0x7FFF, int(value) & 0xFFFF
         if address in self._function_codes:
             self._function_codes[address] = data
             result = 0x0001 << 16 | data
