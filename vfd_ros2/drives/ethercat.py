@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import math
 import struct
-import time
 from typing import Any, Callable, ClassVar, Mapping
 
 from ..errors import ParameterError, ProfileError, ProtocolException, TransportError
@@ -276,12 +275,11 @@ class EthercatDrive:
 
     def send_command(self, action: str) -> None:
         """Send one command now (fault_reset: a rising edge of bit 7)."""
-        words = self.cia.action_words(action, self._last_controlword)
-        for number, word in enumerate(words):
-            if number:
-                # each word must be seen by the slave for a cycle or two (an edge)
-                time.sleep(3 * self.transport.settings.cycle_time_s)
+        for word in self.cia.action_words(action, self._last_controlword):
             self._send(word, 0)
+            # the slave must see each word (an edge, a one-off command) before the
+            # next control cycle may overwrite it, however late that cycle runs
+            self.transport.wait_cycles(2)
 
     def write_setpoint_parameter(self, code: str, raw: int) -> None:
         self._write_raw(self.profile.parameter(code), raw, persistent=False)
@@ -339,6 +337,12 @@ class EthercatDrive:
             except (TransportError, ProtocolException) as exc:
                 log.info('%s: 0x603F not readable: %s', self.hardware_id, exc)
                 self._read_code = 0
+            # the mailbox exchange collects an emergency that was on its way: it names
+            # the fault better than 0x603F
+            for emcy in self.transport.take_emergencies(self.unit_id):
+                self._take_emcy(emcy)
+            if self._emcy_fault.active:
+                return self._emcy_fault
         return self.describe_code(self._read_code or GENERIC_ERROR)
 
     def _reading(self) -> Reading:

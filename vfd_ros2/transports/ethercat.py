@@ -336,6 +336,10 @@ class EthercatSegment:
             else:
                 master.open(self.settings.interface)
         except (ConnectionError, OSError, TransportError) as exc:
+            try:
+                master.close()                  # SOEM may keep the socket it made
+            except Exception:  # noqa: BLE001 - best effort on a failed open
+                log.debug('close after a failed open', exc_info=True)
             raise EthercatError(f'cannot open {self.settings.interface}: {exc}') from exc
         self._master = master
         try:
@@ -987,6 +991,16 @@ class EthercatTransport(Transport):
             slave.set_outputs(data)
         except ValueError as exc:
             raise EthercatError(str(exc)) from exc
+
+    def wait_cycles(self, count: int) -> None:
+        """Return once ``count`` more process-data cycles ran (bounded: never raises)."""
+        segment = self._segment
+        if segment is None:
+            return
+        target = segment._cycles + count
+        deadline = time.monotonic() + count * self.settings.cycle_time_s * 5 + 0.05
+        while segment._cycles < target and time.monotonic() < deadline:
+            time.sleep(self.settings.cycle_time_s / 2)
 
     def read_inputs(self, unit: int) -> bytes:
         """Return slave ``unit``'s TxPDO bytes; TransportError if lost, below OP or stale."""
