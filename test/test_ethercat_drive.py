@@ -267,3 +267,61 @@ def test_hd2_function_codes_over_sdo(start_segment, make_wheel):
     reply = hd2.call(SetDriveParameter, 'set_drive_parameter',
                      SetDriveParameter.Request(name='P00.10', value=1e9, persistent=False))
     assert not reply.success and 'above the maximum' in reply.message
+
+
+def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment, veth_link,
+                                                      tmp_path):
+    """One slave of a bus lost and found again by the segment's supervisor, not a restart."""
+    sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
+    prefix = f'/b{uuid.uuid4().hex[:6]}'
+    config = tmp_path / 'ec_bus.yaml'
+    config.write_text(yaml.safe_dump({
+        'bus': {'name': 'ec0', 'transport.type': 'ethercat',
+                'transport.interface': veth_link.master_interface,
+                'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
+        'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': 'imo_hd2',
+                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
+                   for name, unit in (('left', 1), ('right', 2))}}))
+    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
+        Parameter('config_file', value=str(config))])
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (bus, *bus.drive_nodes):
+        executor.add_node(node)
+    spin_in_background(executor, ros_context)
+    left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
+    try:
+        def both_at(velocity: float) -> bool:
+            for c in (left, right):
+                c.command_velocity(velocity)
+            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
+                       for c in (left, right))
+        wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
+        sim.unplug(1)                                     # the cable into the second slave
+        wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
+                 'right offline')
+        assert left.state.online and left.state.running   # the left wheel keeps going
+        sim.replug(1)
+        wait_for(lambda: (left.command_velocity(1.0), right.state.online and
+                          right.state.reconnects >= 1)[1], 10.0, 'right back')
+        # right has had no fresh command since it came back: it stays stopped
+        assert not right.state.running and right.state.run_state != 6
+        assert sim.drive(1)['velocity_rpm'] == 0.0 or sim.drive(1)['state'] != \
+            'OPERATION_ENABLED'
+        wait_for(lambda: both_at(1.0), 8.0, 'both moving again on fresh commands')
+    finally:
+        bus.destroy_node()
+        executor.shutdown(timeout_sec=1.0)
+
+
+def test_sync_mode_dc(start_segment, make_wheel):
+    sim = start_segment([IMO_HD2_EC_TX508])
+    hd2 = make_wheel('imo_hd2', **{'transport.sync_mode': 'dc', 'transport.cycle_time': 0.001})
+    hd2.wait_status(lambda s: s.online, 10.0, 'HD2 online in DC mode')
+    assert sim.esc(0)['sync0_cycle_ns'] == 1_000_000
+
+
+def test_a_drive_without_dc_refuses_sync_mode_dc(start_segment, make_wheel):
+    start_segment([BONENG_MH_EC])
+    mh = make_wheel('boneng_mh', **{'transport.sync_mode': 'dc'})
+    status = mh.wait_status(lambda s: 'DC' in s.stop_reason, 10.0, 'DC refused')
+    assert not status.online and 'free_run' in status.stop_reason

@@ -392,8 +392,12 @@ class EthercatSegment:
         return tuple(struct.unpack('<H', slave.sdo_read(assign, sub)[:2])[0]
                      for sub in range(1, count + 1))
 
-    def start(self) -> None:
-        """Map process data, set watchdog and sync, reach SAFE-OP and OP, run the cycle."""
+    def start(self, free_running: frozenset[int] = frozenset()) -> None:
+        """Map process data, set watchdog and sync, reach SAFE-OP and OP, run the cycle.
+
+        In DC mode every slave gets SYNC0 except those in ``free_running``
+        (0-based positions of slaves known to have no DC sync).
+        """
         master = self._require_open()
         settings = self.settings
         cycle_ns = int(settings.cycle_time_s * 1e9)
@@ -404,7 +408,8 @@ class EthercatSegment:
             if not master.config_dc():
                 raise EthercatError('DC sync requested but no slave has distributed clocks')
             for slave in self._slaves:
-                slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
+                if slave.position not in free_running:
+                    slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
         with self._mailbox_lock:
             try:
                 master.config_map()                         # requests SAFE-OP
@@ -858,9 +863,13 @@ class EthercatTransport(Transport):
                 for position, setup in sorted(self._setups.items()):
                     self._prepare(segment, identities, setup)
                 self._check_sync(segment)
+                free_running = frozenset(position - 1 for position, setup in self._setups.items()
+                                         if not setup.dc)
                 try:
-                    segment.start()
+                    segment.start(free_running)
                 except AlStateError as exc:
+                    if segment._cycle_thread is None:
+                        raise                    # the segment never reached SAFE-OP
                     # One slave below OP must not keep the others from running: the
                     # supervisor keeps asking it, its drive reports the AL status code.
                     log.warning('EtherCAT %s: %s', self.settings.interface, exc)
