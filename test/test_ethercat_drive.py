@@ -325,3 +325,19 @@ def test_a_drive_without_dc_refuses_sync_mode_dc(start_segment, make_wheel):
     mh = make_wheel('boneng_mh', **{'transport.sync_mode': 'dc'})
     status = mh.wait_status(lambda s: 'DC' in s.stop_reason, 10.0, 'DC refused')
     assert not status.online and 'free_run' in status.stop_reason
+
+
+def test_simulated_drives_and_profiles_agree():
+    """The simulator reads identity, assignment and sync from the profiles; mappings match."""
+    for spec, profile in ((BONENG_MH_EC, 'boneng_mh'), (IMO_HD2_EC_TX508, 'imo_hd2')):
+        ec = load_profile(profile).ethercat
+        assert spec.rx_assign == ec.rx_pdos and spec.tx_assign == ec.tx_pdos
+        assert spec.name == ec.identity.device_name
+        if ec.fixed_mapping:          # what the driver expects is what the drive holds
+            rx = {p.index: p for p in spec.rx_pdos}[ec.rx_pdos[0]]
+            tx = {p.index: p for p in spec.tx_pdos}[ec.tx_pdos[0]]
+            assert [(i << 16) | (s << 8) | b for i, s, b in rx.entries] == \
+                [obj.mapping for obj in ec.rx_entries]
+            assert [(i << 16) | (s << 8) | b for i, s, b in tx.entries] == \
+                [obj.mapping for _, obj in ec.tx_entries]
+    assert IMO_HD2_EC_TX508.vendor_id == 0x4D8 and IMO_HD2_EC_TX508.product_code == 0x9252

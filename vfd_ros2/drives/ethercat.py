@@ -141,6 +141,10 @@ class EthercatDrive:
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
         self._read_code: int | None = None       # 0x603F read over SDO for this fault
+        self._was_faulted = False
+        # the last emergency's meaning, kept across a reconnect: after a link loss the
+        # fault is still the one the emergency named (0x603F only has its CiA code)
+        self._last_emcy: FaultInfo = NO_FAULT
 
     # --- link -------------------------------------------------------------------------
 
@@ -201,8 +205,9 @@ class EthercatDrive:
         self.cia.reset()
         self._values.clear()
         self._last_controlword = None
-        self._emcy_fault = NO_FAULT
+        self._emcy_fault = self._last_emcy     # kept: see __init__
         self._read_code = None
+        self._was_faulted = False
 
     def configure(self, protection: HostLossProtection,
                   apply_commissioning: bool) -> list[str]:
@@ -296,9 +301,13 @@ class EthercatDrive:
         self._decode(self.transport.read_inputs(self.unit_id))
         for emcy in self.transport.take_emergencies(self.unit_id):
             self._take_emcy(emcy)
-        if not self.cia.faulted:
-            self._emcy_fault = NO_FAULT
+        faulted = self.cia.faulted
+        if self._was_faulted and not faulted:
+            # left FAULT (a reset): what named the old fault is history. An emergency
+            # that arrives before the statusword shows the fault is kept.
+            self._emcy_fault = self._last_emcy = NO_FAULT
             self._read_code = None
+        self._was_faulted = faulted
         return self._reading()
 
     def describe_code(self, code: int, register: int | None = None,
@@ -319,7 +328,7 @@ class EthercatDrive:
         log.warning('%s EMCY 0x%04X register 0x%02X data %s: %s %s', self.hardware_id,
                     emcy.error_code, emcy.error_register, emcy.data.hex(' '), info.display,
                     info.name)
-        self._emcy_fault = info
+        self._emcy_fault = self._last_emcy = info
 
     def _fault(self) -> FaultInfo:
         if not self.cia.faulted:

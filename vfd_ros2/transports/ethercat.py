@@ -753,12 +753,12 @@ class EthercatTransport(Transport):
                            '(distributed clocks, SYNC0 every cycle_time)'),
         TransportParameter('state_timeout', 2.0, 's each AL state change may take'),
         TransportParameter('sdo_timeout', 0.7, 's each SDO exchange may take'),
-        TransportParameter('stale_after', 0.1, 's without fresh inputs from a slave before it '
-                           'counts as silent'),
+        TransportParameter('stale_after', 0.25, 's without fresh inputs from a slave before it '
+                           'counts as silent (a loaded host may skip some cycles)'),
     )
     shared_by_drives = True
 
-    def __init__(self, settings: SegmentSettings, stale_after: float = 0.1) -> None:
+    def __init__(self, settings: SegmentSettings, stale_after: float = 0.25) -> None:
         super().__init__()
         self.settings = settings
         self.stale_after = stale_after
@@ -784,7 +784,7 @@ class EthercatTransport(Transport):
         cycle = float(settings.get('cycle_time', 0.002))
         if not 0.0001 <= cycle <= 0.1:
             raise TransportError(f'transport.cycle_time {cycle:g} s: use 0.0001..0.1 s')
-        stale = float(settings.get('stale_after', 0.1))
+        stale = float(settings.get('stale_after', 0.25))
         if stale < 2 * cycle:
             raise TransportError(f'transport.stale_after {stale:g} s must be at least two '
                                  f'cycles ({2 * cycle:g} s)')
