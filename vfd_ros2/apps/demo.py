@@ -25,7 +25,6 @@ and exits (0 if both wheels followed the profile).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import os
 import signal
@@ -33,7 +32,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import types
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -262,20 +260,11 @@ def _start_ethercat_wheels(wheels: list[str], workdir: Path) -> tuple[object, ..
     if reason:
         raise RuntimeError(f'--ethercat needs network namespaces: {reason}')
     link = netns.create_veth_link('demo')
-    # The segment is served by a spawned process, which re-imports the main module;
-    # the installed `demo` script has no __main__ guard, so the child is pointed at
-    # the segment module instead (only while the process starts).
-    main_module = sys.modules['__main__']
-    stand_in = types.ModuleType('__main__')
-    stand_in.__spec__ = importlib.util.find_spec('vfd_ros2.sim.ethercat.segment')
-    sys.modules['__main__'] = stand_in
     try:
         segment = SimulatedSegment(link, [IMO_HD2_EC_TX508] * len(wheels))
     except BaseException:
         netns.destroy_veth_link(link)
         raise
-    finally:
-        sys.modules['__main__'] = main_module
     config = workdir / 'ethercat_bus.yaml'
     config.write_text(yaml.safe_dump({
         'bus': {'name': 'ec0', 'transport.type': 'ethercat',
