@@ -341,3 +341,27 @@ def test_simulated_drives_and_profiles_agree():
             assert [(i << 16) | (s << 8) | b for i, s, b in tx.entries] == \
                 [obj.mapping for _, obj in ec.tx_entries]
     assert IMO_HD2_EC_TX508.vendor_id == 0x4D8 and IMO_HD2_EC_TX508.product_code == 0x9252
+
+
+def test_shipped_ethercat_bus_config_and_bad_settings():
+    """config/ethercat_bus.yaml is valid; bad transport settings are clear errors (no I/O)."""
+    from pathlib import Path
+
+    from vfd_ros2.control.bus import parse_bus_config
+    from vfd_ros2.control.factory import build_transport
+    from vfd_ros2.errors import TransportError
+    path = Path(__file__).resolve().parents[1] / 'config' / 'ethercat_bus.yaml'
+    config = parse_bus_config(yaml.safe_load(path.read_text()))
+    assert [d.settings['drive.profile'] for d in config.drives] == ['imo_hd2', 'boneng_mh']
+    transport = build_transport({**config.settings, **config.drives[0].settings})
+    assert transport.description == 'ethercat:enp3s0' and transport.shared_by_drives
+    base = {'drive.profile': 'imo_hd2', 'transport.type': 'ethercat',
+            'transport.interface': 'eth9'}
+    for bad, why in (({'transport.interface': ''}, 'transport.interface is empty'),
+                     ({'transport.sync_mode': 'sometimes'}, 'use free_run or dc'),
+                     ({'transport.cycle_time': 0.0}, 'transport.cycle_time'),
+                     ({'transport.realtime_priority': 120}, 'use 0..99')):
+        with pytest.raises(TransportError, match=why):
+            build_transport({**base, **bad})
+    with pytest.raises(Exception, match='no ethercat section'):
+        build_transport({**base, 'drive.profile': 'boneng_am'})

@@ -753,6 +753,8 @@ class EthercatTransport(Transport):
                            '(distributed clocks, SYNC0 every cycle_time)'),
         TransportParameter('state_timeout', 2.0, 's each AL state change may take'),
         TransportParameter('sdo_timeout', 0.7, 's each SDO exchange may take'),
+        TransportParameter('realtime_priority', 0, 'SCHED_FIFO priority (1..99) of the '
+                           'process-data thread; 0 = normal scheduling (a refusal is logged)'),
         TransportParameter('stale_after', 0.25, 's without fresh inputs from a slave before it '
                            'counts as silent (a loaded host may skip some cycles)'),
     )
@@ -784,6 +786,9 @@ class EthercatTransport(Transport):
         cycle = float(settings.get('cycle_time', 0.002))
         if not 0.0001 <= cycle <= 0.1:
             raise TransportError(f'transport.cycle_time {cycle:g} s: use 0.0001..0.1 s')
+        priority = int(settings.get('realtime_priority', 0) or 0)
+        if not 0 <= priority <= 99:
+            raise TransportError(f'transport.realtime_priority {priority}: use 0..99')
         stale = float(settings.get('stale_after', 0.25))
         if stale < 2 * cycle:
             raise TransportError(f'transport.stale_after {stale:g} s must be at least two '
@@ -792,7 +797,8 @@ class EthercatTransport(Transport):
             interface=interface, namespace=str(settings.get('namespace', '') or '') or None,
             cycle_time_s=cycle, sync_mode=mode,
             state_timeout_s=float(settings.get('state_timeout', 2.0)),
-            sdo_timeout_s=float(settings.get('sdo_timeout', 0.7))), stale)
+            sdo_timeout_s=float(settings.get('sdo_timeout', 0.7)),
+            realtime_priority=priority or None), stale)
 
     @property
     def description(self) -> str:
