@@ -365,3 +365,29 @@ def test_shipped_ethercat_bus_config_and_bad_settings():
             build_transport({**base, **bad})
     with pytest.raises(Exception, match='no ethercat section'):
         build_transport({**base, 'drive.profile': 'boneng_am'})
+
+
+def test_hung_control_loop_stops_the_drive(start_segment, veth_link):
+    """The process-data thread outlives a hung control loop: stale outputs become a stop."""
+    from vfd_ros2.control.factory import build_controller
+    sim = start_segment([IMO_HD2_EC_TX508])
+    controller = build_controller({
+        'drive.profile': 'imo_hd2', 'transport.type': 'ethercat',
+        'transport.interface': veth_link.master_interface,
+        'transport.namespace': veth_link.namespace, 'auto_enable': True,
+        'drive_comm_timeout': 0.2, 'command_timeout': 10.0, 'gear_ratio': 10.0})
+    try:
+        def cycle() -> bool:
+            controller.command_velocity(2.0)
+            controller.step()
+            return sim.drive(0)['velocity_rpm'] > 150.0
+        wait_for(cycle, 8.0, 'running at 2 rad/s', period=0.02)
+        assert controller.state.protection.timeout == pytest.approx(0.2)
+        # the loop hangs here (no more step()); frames keep flowing, so the SM watchdog
+        # alone would never trip
+        wait_for(lambda: sim.drive(0)['state'] == 'SWITCHED_ON', 2.0, 'operation disabled')
+        wait_for(lambda: sim.drive(0)['velocity_rpm'] == 0.0, 5.0, 'ramped to a stop')
+        assert controller.drive.transport.outputs_held(1) > 0
+        assert sim.drive(0)['error_code'] == 0 and sim.drive(0)['al_state'] == 'OP'
+    finally:
+        controller.finish()

@@ -174,7 +174,9 @@ class EthercatDrive:
         return 0.0
 
     def action_seconds(self) -> float:
-        return 4 * self.transport.settings.sdo_timeout_s / 10     # a few SDO round trips
+        # a service action: up to four SDO exchanges (a function-code write is two
+        # downloads and two uploads), each a few process-data cycles on a healthy segment
+        return 4 * 4 * self.transport.settings.cycle_time_s
 
     def host_loss_plan(self, requested: float, interval: float) -> HostLossProtection:
         """Plan the SM watchdog: the drive stops when process data stops (no I/O).
@@ -183,21 +185,27 @@ class EthercatDrive:
         rate, so the minimum is two cycles plus the host's jitter; the ESC holds
         at most 6.5535 s. Set when the segment starts; configure() reads it back.
         """
-        mechanism = f'SM watchdog (process data) of slave {self.unit_id}'
+        mechanism = (f'SM watchdog (process data) of slave {self.unit_id} + stale RxPDO '
+                     'replaced by disable operation')
         if requested == 0:
             self.transport.set_watchdog(self.unit_id, 0.0)
             return HostLossProtection(requested=0.0, note='off, as drive_comm_timeout 0 asks')
         cycle = self.transport.settings.cycle_time_s
         minimum = 2 * cycle + HOST_LOSS_JITTER
+        # The process-data thread outlives a hung control loop and would keep sending
+        # its last command: outputs the loop has not refreshed for this long (two of its
+        # cycles + jitter at least) are replaced by disable operation + velocity 0.
+        hold = max(requested, 2 * interval + HOST_LOSS_JITTER)
+        minimum = max(minimum, hold if requested else minimum)
         value = min(max(requested, minimum), WATCHDOG_MAX_S)
         value = math.ceil(value * 10000 - 1e-6) / 10000          # 100 us steps
         notes = []
         if value > requested + 1e-9:
-            notes.append(f'raised from {requested:g} s: frames come every {cycle * 1000:g} ms '
-                         'and the host may be late')
+            notes.append(f'raised from {requested:g} s: frames come every {cycle * 1000:g} ms, '
+                         f'commands every {interval * 1000:.0f} ms, and the host may be late')
         elif value < requested - 1e-9:
             notes.append(f'the ESC holds at most {WATCHDOG_MAX_S:g} s')
-        self.transport.set_watchdog(self.unit_id, value)
+        self.transport.set_watchdog(self.unit_id, value, hold_s=value)
         return HostLossProtection(mechanism, value, requested, '; '.join(notes))
 
     def forget_state(self) -> None:

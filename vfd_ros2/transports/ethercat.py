@@ -192,6 +192,10 @@ class EthercatSlave:
         self.identity = SlaveIdentity(position, soem_slave.name, soem_slave.man, soem_slave.id,
                                       soem_slave.rev)
         self._outputs = b''
+        self._outputs_time = 0.0
+        self._safe_outputs = b''
+        self._hold_s = 0.0
+        self._held_cycles = 0
         self._inputs = b''
         self._inputs_time = 0.0
         self._emergencies: deque[Emergency] = deque(maxlen=256)
@@ -254,6 +258,29 @@ class EthercatSlave:
                              f'got {len(data)}')
         with self._segment._io_lock:
             self._outputs = bytes(data)
+            self._outputs_time = time.monotonic()
+
+    def guard_outputs(self, safe: bytes, hold_s: float) -> None:
+        """Send ``safe`` instead of outputs older than ``hold_s`` (0 = never).
+
+        The process-data thread keeps sending whatever was set last; if the code
+        that sets outputs stops (a hung control loop), the slave's SM watchdog
+        never trips. With a guard, outputs nobody refreshed within ``hold_s`` are
+        replaced by ``safe`` (e.g. disable operation, velocity 0) until the next
+        ``set_outputs``.
+        """
+        if hold_s and len(safe) != len(self._outputs):
+            raise ValueError(f'slave {self.position} takes {len(self._outputs)} output bytes, '
+                             f'got {len(safe)} safe ones')
+        with self._segment._io_lock:
+            self._safe_outputs = bytes(safe)
+            self._hold_s = float(hold_s)
+            self._outputs_time = time.monotonic()
+
+    @property
+    def outputs_held(self) -> int:
+        """Cycles in which stale outputs were replaced by the safe ones (since start)."""
+        return self._held_cycles
 
     def outputs(self) -> bytes:
         with self._segment._io_lock:
@@ -520,7 +547,11 @@ class EthercatSegment:
             with self._io_lock:
                 for slave in slaves:
                     if slave._outputs:
-                        slave._soem.output = slave._outputs
+                        if slave._hold_s and woke - slave._outputs_time > slave._hold_s:
+                            slave._soem.output = slave._safe_outputs      # nobody refreshes
+                            slave._held_cycles += 1
+                        else:
+                            slave._soem.output = slave._outputs
             master.send_processdata()
             wkc = master.receive_processdata(receive_us)
             self._cycles += 1
@@ -767,6 +798,7 @@ class EthercatTransport(Transport):
         self.timeout = settings.sdo_timeout_s
         self._setups: dict[int, SlaveSetup] = {}
         self._watchdogs: dict[int, float] = {}
+        self._holds: dict[int, float] = {}
         self._errors: dict[int, str] = {}          # position -> why it cannot be used
         self._open_units: set[int] = set()
         self._segment: EthercatSegment | None = None
@@ -835,10 +867,23 @@ class EthercatTransport(Transport):
                 raise TransportError(f'EtherCAT slave {setup.position} is attached twice')
             self._setups[setup.position] = setup
 
-    def set_watchdog(self, unit: int, seconds: float) -> None:
-        """Ask for the SM (process-data) watchdog of one slave; 0 = off. Set at open."""
+    def set_watchdog(self, unit: int, seconds: float, hold_s: float = 0.0) -> None:
+        """Ask for the SM (process-data) watchdog of one slave (0 = off), set at open.
+
+        ``hold_s`` > 0: outputs the drive has not refreshed for that long are replaced
+        by its safe outputs in the process-data thread (see ``guard_outputs``).
+        """
         with self._lock:
             self._watchdogs[unit] = seconds
+            self._holds[unit] = hold_s
+            segment = self._segment
+            setup = self._setups.get(unit)
+        if segment is not None and setup is not None and unit <= len(segment.slaves):
+            segment.slave(unit - 1).guard_outputs(setup.safe_outputs, hold_s)
+
+    def outputs_held(self, unit: int) -> int:
+        slave = self._slave(unit, check=False)
+        return slave.outputs_held if slave is not None else 0
 
     def watchdog(self, unit: int) -> float | None:
         """Return the SM watchdog time the slave holds now (s; None: unknown)."""
@@ -891,7 +936,9 @@ class EthercatTransport(Transport):
             for position, setup in self._setups.items():
                 if position not in self._errors:
                     try:
-                        segment.slave(position - 1).set_outputs(setup.safe_outputs)
+                        slave = segment.slave(position - 1)
+                        slave.set_outputs(setup.safe_outputs)
+                        slave.guard_outputs(setup.safe_outputs, self._holds.get(position, 0.0))
                     except ValueError as exc:       # mapped other than the drive expects
                         self._errors[position] = f'slave {position}: {exc}'
 
