@@ -159,6 +159,16 @@ def render_table(results: dict[str, Any]) -> str:
                              ['drives', 'cycle ms', 'achieved ms', 'missed', 'WKC err/lost',
                               'jitter p50/p99/max µs', 'CPU % master/cycle thread',
                               'CPU % sim', 'sim frame p50/p99 µs'], rows))
+            rows = [[r.get('case', ''), str(r.get('matched', r.get('error', ''))),
+                     _fmt(r.get('median_ms'), 2), _fmt(r.get('p99_ms'), 2),
+                     _fmt(r.get('max_ms'), 2), _fmt(r.get('wire_bound_ms'), 1)]
+                    for r in ethercat.get('latency', [])]
+            if rows:
+                parts.append('**6b. EtherCAT command latency** (~/velocity_command published → '
+                             'the new RxPDO bytes handed to the process-data thread; the frame '
+                             'leaves within one more cycle)\n\n' + _table(
+                                 ['case', 'matched', 'median ms', 'p99 ms', 'max ms',
+                                  '+ ≤ ms to the wire'], rows))
     meta = results.get('meta', {})
     parts.append(f"_{meta.get('mode', '')} run, {meta.get('date', '')}, "
                  f"{meta.get('cpus', '?')} CPUs, Python {meta.get('python', '')}, pymodbus "

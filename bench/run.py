@@ -131,7 +131,12 @@ def ethercat_section(quick: bool) -> dict[str, Any]:
             except Exception as exc:  # noqa: BLE001 - one failed case must not lose the rest
                 rows.append({'drives': drives, 'cycle_ms': cycle_ms,
                              'error': f'{type(exc).__name__}: {exc}'})
-    return {'rows': rows, 'window_s': window}
+    print('[bench] ethercat command latency ...', flush=True)
+    try:
+        latency = [ethercat_cycle.command_latency(2, 0.002, 100 if quick else 300)]
+    except Exception as exc:  # noqa: BLE001
+        latency = [{'case': 'latency x2 2 ms', 'error': f'{type(exc).__name__}: {exc}'}]
+    return {'rows': rows, 'window_s': window, 'latency': latency}
 
 
 def floor_profiles(cycles: int) -> dict[str, list[tuple[str, float, int]]]:
