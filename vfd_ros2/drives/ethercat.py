@@ -93,7 +93,9 @@ class EthercatDrive:
             raise ProfileError(f'profile {profile.name} has no ethercat section')
         if not isinstance(transport, EthercatTransport):
             raise ParameterError('EthercatDrive needs an EthercatTransport')
-        self.profile = profile
+        # the objects only this bus reaches (e.g. the BONENG MH EC's CiA 402 ramps) join
+        # the parameters the services know
+        self.profile = profile.extended(profile.ethercat.parameters)
         self.transport = transport
         self.owns_transport = owns_transport
         self.unit_id = unit_id

@@ -223,6 +223,20 @@ def _commissioning(items: Any) -> tuple[CommissioningWrite, ...]:
 def _ethercat(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> EthercatSpec:
     identity = item.get('identity') or {}
     window = item.get('function_codes')
+    own: dict[str, Parameter] = {}
+    names = {p.name for p in parameters.values() if p.name}
+    for raw in item.get('parameters') or ():
+        parameter = _parameter(raw)
+        if parameter.code in parameters or parameter.code in own:
+            raise ProfileError(f'ethercat.parameters: {parameter.code} defined twice')
+        if parameter.index is None:
+            raise ProfileError(f'ethercat.parameters: {parameter.code} needs its CoE index')
+        if parameter.name and parameter.name in names:
+            raise ProfileError(f'ethercat.parameters: readable name {parameter.name!r} used '
+                               'twice')
+        names.add(parameter.name)
+        own[parameter.code] = parameter
+    parameters = {**parameters, **own}      # commissioning may name them
     comm = item.get('comm_fault')
     spec = EthercatSpec(
         identity=EthercatIdentity(
@@ -248,6 +262,7 @@ def _ethercat(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> E
                           for m in item.get('emcy_faults') or ()),
         commissioning=_commissioning(item.get('commissioning')),
         comm_fault=(int(comm['fault']), int(comm.get('subcode', 0))) if comm else None,
+        parameters=own,
         note=str(item.get('note', '')),
     )
     if spec.objects.control is not ControlStyle.CIA402:

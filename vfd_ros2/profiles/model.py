@@ -9,6 +9,7 @@ CANopen limits. A new family is a new data file, never a new ``if`` in the code.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
@@ -447,6 +448,9 @@ class EthercatSpec:
     commissioning: tuple[CommissioningWrite, ...] = ()
     # the fault the drive raises when process data stops (its SM watchdog / comm timeout)
     comm_fault: tuple[int, int] | None = None
+    # Objects reachable only over this bus (no Modbus register), e.g. the BONENG MH EC's
+    # CiA 402 ramps: added to the profile's parameters by the EtherCAT drive only.
+    parameters: Mapping[str, Parameter] = field(default_factory=dict)
     note: str = ''
 
     @property
@@ -592,6 +596,19 @@ class Profile:
             if signal.role == role:
                 return signal
         return None
+
+    def extended(self, extra: Mapping[str, Parameter]) -> 'Profile':
+        """Return this profile with ``extra`` parameters added (a bus's own objects)."""
+        if not extra:
+            return self
+        by_name = dict(self._by_name)
+        for code, parameter in extra.items():
+            if parameter.name:
+                by_name[parameter.name] = code
+        return dataclasses.replace(
+            self, parameters={**self.parameters, **extra}, _by_name=by_name,
+            _by_folded_code={**self._by_folded_code,
+                             **{code.casefold(): code for code in extra}})
 
     @property
     def names(self) -> Mapping[str, str]:
