@@ -300,6 +300,7 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
                  'right offline')
         assert left.state.online and left.state.running   # the left wheel keeps going
+        assert bus.bus.link_stats().bad_frames > 0        # the segment saw WKC drops
         sim.replug(1)
         wait_for(lambda: (left.command_velocity(1.0), right.state.online and
                           right.state.reconnects >= 1)[1], 10.0, 'right back')
@@ -391,3 +392,38 @@ def test_hung_control_loop_stops_the_drive(start_segment, veth_link):
         assert sim.drive(0)['error_code'] == 0 and sim.drive(0)['al_state'] == 'OP'
     finally:
         controller.finish()
+
+
+def test_identity_check_and_host_loss_plan_without_io():
+    """Identity rules and the SM watchdog plan, on plain values (no segment)."""
+    from vfd_ros2.drives.ethercat import EthercatDrive
+    from vfd_ros2.protocol.scaling import VelocityScaling
+    from vfd_ros2.transports.ethercat import (
+        EthercatTransport,
+        PdoConfiguration,
+        SegmentSettings,
+        SlaveIdentity,
+        SlaveSetup,
+        identity_mismatch,
+    )
+    setup = SlaveSetup(1, PdoConfiguration((0x1600,), (0x1A00,)), 6, 8, bytes(6),
+                       vendor_id=0x4D8, product_code=0x9252, device_name='IMO-EtherCAT')
+    assert identity_mismatch(SlaveIdentity(0, 'IMO-EtherCAT', 0x4D8, 0x9252, 1), setup) == ''
+    text = identity_mismatch(SlaveIdentity(0, 'X', 0x4D8, 0x1, 1), setup)
+    assert 'product 0x1, not 0x9252' in text and 'vendor' not in text
+    by_name = SlaveSetup(2, PdoConfiguration((0x1701,), (0x1B01,)), 4, 4, bytes(4),
+                         device_name='AD_Drive')
+    assert identity_mismatch(SlaveIdentity(1, 'AD_Drive', 0, 0, 1), by_name) == ''
+    assert "device name 'Other', not 'AD_Drive'" in identity_mismatch(
+        SlaveIdentity(1, 'Other', 0, 0, 1), by_name)
+    transport = EthercatTransport(SegmentSettings('eth9', cycle_time_s=0.002))
+    drive = EthercatDrive(load_profile('imo_hd2'), transport, 1, VelocityScaling(10.0))
+    plan = drive.host_loss_plan(0.3, 0.02)
+    assert plan.active and plan.timeout == pytest.approx(0.3) and 'SM watchdog' in plan.mechanism
+    plan = drive.host_loss_plan(0.01, 0.02)              # raised: frames, commands, jitter
+    assert plan.timeout == pytest.approx(0.09) and 'raised from 0.01 s' in plan.note
+    assert drive.host_loss_plan(100.0, 0.02).timeout == pytest.approx(6.5535)
+    off = drive.host_loss_plan(0.0, 0.02)
+    assert not off.active and 'off' in off.note
+    with pytest.raises(Exception, match='attached twice'):
+        EthercatDrive(load_profile('imo_hd2'), transport, 1, VelocityScaling(10.0))
