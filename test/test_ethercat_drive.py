@@ -136,6 +136,8 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
             return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
                        for c in controllers.values())
         wait_for(lambda: both_at(1.0), 8.0, 'both at 1 rad/s')
+        for c in controllers.values():      # drive_comm_timeout 0.3 s holds on a bus too
+            assert c.state.protection.timeout == pytest.approx(0.3), c.state.protection
         assert sim.drive(0)['mode'] == 9                         # HD2 in csv
         assert sim.drive(1)['controlword'] & 0x70 == 0x70        # MH CoE_VL: ramp bits set
         assert sim.drive(1)['velocity_rpm'] > 90.0

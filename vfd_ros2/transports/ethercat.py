@@ -853,7 +853,9 @@ class EthercatTransport(Transport):
         return self.settings.cycle_time_s
 
     def failed_exchange_seconds(self) -> float:
-        return self.settings.sdo_timeout_s
+        # A drive whose slave is gone fails its connect on the AL state read (one frame,
+        # a few ms), not on an SDO timeout: its drive is offline before any mailbox use.
+        return max(0.02, 5 * self.settings.cycle_time_s)
 
     # -- drives attach their slaves before the segment opens --------------------------------
 
