@@ -429,3 +429,11 @@ def test_identity_check_and_host_loss_plan_without_io():
     assert not off.active and 'off' in off.note
     with pytest.raises(Exception, match='attached twice'):
         EthercatDrive(load_profile('imo_hd2'), transport, 1, VelocityScaling(10.0))
+
+
+def test_dc_cycle_the_drive_does_not_take_is_a_clear_error(start_segment, make_wheel):
+    start_segment([IMO_HD2_EC_TX508])
+    hd2 = make_wheel('imo_hd2', **{'transport.sync_mode': 'dc', 'transport.cycle_time': 0.003})
+    status = hd2.wait_status(lambda s: 'accepts cycle times' in s.stop_reason, 10.0,
+                             'cycle refused')
+    assert not status.online and 'not transport.cycle_time 3000 us' in status.stop_reason

@@ -18,6 +18,9 @@ One ``EthercatSegment`` owns one ``pysoem.Master`` (one network interface) and:
   and text), PDO assignment/mapping at PRE-OP, outputs/inputs (thread-safe),
   AL state with the AL status code, emergencies.
 
+Positions in this API are 0-based (pysoem's ``master.slaves`` index); messages and
+logs number slaves from 1, as SOEM and configuration tools do.
+
 Every call is bounded in time (SOEM's frame/state/mailbox timeouts, set from the
 settings) and raises the package's errors (``vfd_ros2.errors``): AL state
 failures carry the ETG.1000.6 AL status code and its text.
@@ -156,7 +159,7 @@ class AlStateError(EthercatError):
         self.code = code
         self.text = al_status_text(code)
         super().__init__(
-            f'slave {position} did not reach {requested.name}: it is {al_state_name(status)}, '
+            f'slave {position + 1} did not reach {requested.name}: it is {al_state_name(status)}, '
             f'AL status code 0x{code:04X} ({self.text})')
 
 
@@ -167,8 +170,9 @@ class SdoAbortError(ProtocolException):
         self.position = position
         self.index = index
         self.subindex = subindex
-        super().__init__(code, sdo_abort_text(code), f'slave {position} 0x{index:04X}:{subindex}')
-        self.args = (f'SDO abort 0x{code:08X} ({self.text}) from slave {position} at '
+        super().__init__(code, sdo_abort_text(code),
+                         f'slave {position + 1} 0x{index:04X}:{subindex}')
+        self.args = (f'SDO abort 0x{code:08X} ({self.text}) from slave {position + 1} at '
                      f'0x{index:04X}:{subindex}',)
 
     def __str__(self) -> str:
@@ -254,7 +258,7 @@ class EthercatSlave:
     def set_outputs(self, data: bytes) -> None:
         """Send ``data`` (RxPDO bytes) from the next cycle on; the length must match."""
         if len(data) != len(self._outputs):
-            raise ValueError(f'slave {self.position} takes {len(self._outputs)} output bytes, '
+            raise ValueError(f'slave {self.position + 1} takes {len(self._outputs)} output bytes, '
                              f'got {len(data)}')
         with self._segment._io_lock:
             self._outputs = bytes(data)
@@ -270,7 +274,7 @@ class EthercatSlave:
         ``set_outputs``.
         """
         if hold_s and len(safe) != len(self._outputs):
-            raise ValueError(f'slave {self.position} takes {len(self._outputs)} output bytes, '
+            raise ValueError(f'slave {self.position + 1} takes {len(self._outputs)} output bytes, '
                              f'got {len(safe)} safe ones')
         with self._segment._io_lock:
             self._safe_outputs = bytes(safe)
@@ -405,7 +409,7 @@ class EthercatSegment:
                 current = self._assignment(slave, assign)
                 if current != tuple(indices):
                     raise EthercatError(
-                        f'slave {position} has a fixed assignment 0x{assign:04X} = '
+                        f'slave {position + 1} has a fixed assignment 0x{assign:04X} = '
                         f'{[hex(i) for i in current]}; {[hex(i) for i in indices]} was '
                         f'asked for') from exc
                 continue                                    # fixed and already right
@@ -606,7 +610,7 @@ class EthercatSegment:
                     try:
                         slave.poll_mailbox()
                     except TransportError as exc:
-                        log.debug('mailbox poll of slave %d failed: %s', slave.position, exc)
+                        log.debug('mailbox poll of slave %d failed: %s', slave.position + 1, exc)
 
     def _check_states(self) -> None:
         """SOEM's recovery sequence: re-enter the target state, find lost slaves again."""
@@ -622,11 +626,11 @@ class EthercatSegment:
                 if slave.state is ALState.NONE:            # no answer: gone
                     if not slave.lost:
                         slave.lost = True
-                        log.warning('EtherCAT slave %d lost', slave.position)
+                        log.warning('EtherCAT slave %d lost', slave.position + 1)
                         if self.on_slave_lost:
                             self.on_slave_lost(slave.position)
                     if self.settings.recover and soem.recover(timeout=3000) > 0:
-                        log.info('EtherCAT slave %d found again', slave.position)
+                        log.info('EtherCAT slave %d found again', slave.position + 1)
                         soem.reconfig(timeout=3000)
                     continue
                 if slave.al_status & AL_ERROR_FLAG:        # acknowledge, then go on
@@ -640,7 +644,7 @@ class EthercatSegment:
 
     def _mark_returned(self, slave: EthercatSlave) -> None:
         slave.lost = False
-        log.info('EtherCAT slave %d is back in %s', slave.position, slave.state.name)
+        log.info('EtherCAT slave %d is back in %s', slave.position + 1, slave.state.name)
         if self.on_slave_returned:
             self.on_slave_returned(slave.position)
 
@@ -698,7 +702,7 @@ class EthercatSegment:
             if time.monotonic() > deadline:
                 slave = pending[0]
                 if slave.al_status == 0:
-                    raise CommTimeout(f'slave {slave.position} did not answer while waiting '
+                    raise CommTimeout(f'slave {slave.position + 1} did not answer while waiting '
                                       f'for {state.name}')
                 raise AlStateError(slave.position, state, slave.al_status, slave.al_status_code)
             time.sleep(0.002)
@@ -709,7 +713,7 @@ class EthercatSegment:
             try:
                 slave._soem.set_watchdog('processdata', seconds * 1000.0)
             except (AttributeError, pysoem.WkcError) as exc:
-                raise EthercatError(f'slave {slave.position}: SM watchdog of {seconds} s not '
+                raise EthercatError(f'slave {slave.position + 1}: SM watchdog of {seconds} s not '
                                     f'set: {exc}') from exc
 
     def _mailbox(self, slave: EthercatSlave, what: str, index: int, subindex: int,
@@ -721,13 +725,13 @@ class EthercatSegment:
             except pysoem.SdoError as exc:
                 raise SdoAbortError(slave.position, index, subindex, exc.abort_code) from exc
             except pysoem.WkcError as exc:
-                raise CommTimeout(f'slave {slave.position}: no mailbox answer to {what} '
+                raise CommTimeout(f'slave {slave.position + 1}: no mailbox answer to {what} '
                                   f'(WKC {exc.wkc})') from exc
             except pysoem.MailboxError as exc:
-                raise EthercatError(f'slave {slave.position}: mailbox error {exc.error_code} '
+                raise EthercatError(f'slave {slave.position + 1}: mailbox error {exc.error_code} '
                                     f'({exc.desc}) on {what}') from exc
             except pysoem.PacketError as exc:
-                raise BadFrame(f'slave {slave.position}: unexpected mailbox reply to {what} '
+                raise BadFrame(f'slave {slave.position + 1}: unexpected mailbox reply to {what} '
                                f'(packet error {exc.error_code})') from exc
             except pysoem.Emergency as exc:            # without a callback pysoem raises it
                 slave._on_emergency(exc)
@@ -758,7 +762,7 @@ class SlaveSetup:
     device_name: str = ''
     fixed_mapping: bool = False
     startup: tuple[tuple[int, int, bytes], ...] = ()
-    sync_cycles_s: tuple[float, ...] = ()      # cycle times the slave accepts (empty: any)
+    sync_cycles_s: tuple[float, ...] = ()      # SYNC0 cycles the slave accepts (empty: any)
     dc: bool = True                            # the slave supports DC SYNC0
     free_run: bool = True
 
@@ -916,8 +920,10 @@ class EthercatTransport(Transport):
                 for position, setup in sorted(self._setups.items()):
                     self._prepare(segment, identities, setup)
                 self._check_sync(segment)
+                # no SYNC0 for a slave without DC, nor for one its drive cannot use (a
+                # refused cycle would keep the whole segment below SAFE-OP)
                 free_running = frozenset(position - 1 for position, setup in self._setups.items()
-                                         if not setup.dc)
+                                         if not setup.dc or position in self._errors)
                 try:
                     segment.start(free_running)
                 except AlStateError as exc:
@@ -942,7 +948,7 @@ class EthercatTransport(Transport):
                         slave.set_outputs(setup.safe_outputs)
                         slave.guard_outputs(setup.safe_outputs, self._holds.get(position, 0.0))
                     except ValueError as exc:       # mapped other than the drive expects
-                        self._errors[position] = f'slave {position}: {exc}'
+                        self._errors[position] = str(exc)
 
     def _prepare(self, segment: EthercatSegment, identities: list[SlaveIdentity],
                  setup: SlaveSetup) -> None:
@@ -981,8 +987,8 @@ class EthercatTransport(Transport):
             elif self.settings.sync_mode is SyncMode.FREE_RUN and not setup.free_run:
                 self._errors[position] = (f'slave {position} does not run free: set '
                                           'transport.sync_mode dc')
-            elif setup.sync_cycles_s and not any(abs(cycle - c) < 1e-9
-                                                 for c in setup.sync_cycles_s):
+            elif self.settings.sync_mode is SyncMode.DC and setup.sync_cycles_s and not any(
+                    abs(cycle - c) < 1e-9 for c in setup.sync_cycles_s):
                 allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
                 self._errors[position] = (f'slave {position} accepts cycle times {allowed}, not '
                                           f'transport.cycle_time {cycle * 1e6:g} us')
