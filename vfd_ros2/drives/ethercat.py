@@ -35,7 +35,7 @@ from ..profiles import (
     ValueType,
     describe_fault,
 )
-from ..protocol.cia402 import Command
+from ..protocol.cia402 import Command, State
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter, TransportStats
 from ..transports.ethercat import (
@@ -159,7 +159,7 @@ class EthercatDrive:
         return self.transport.stats_for(self.unit_id)
 
     @property
-    def state(self) -> Any:
+    def state(self) -> State | None:
         return self.cia.state
 
     def open(self) -> None:

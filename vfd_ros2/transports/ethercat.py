@@ -41,7 +41,7 @@ import time
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
 from ..protocol.ethercat import (
@@ -809,7 +809,7 @@ class EthercatTransport(Transport):
         self._lock = threading.RLock()
 
     @classmethod
-    def from_settings(cls, settings: Any) -> 'EthercatTransport':
+    def from_settings(cls, settings: Mapping[str, Any]) -> 'EthercatTransport':
         interface = str(settings.get('interface', '') or '')
         if not interface:
             raise TransportError('transport.interface is empty: name the network interface of '
