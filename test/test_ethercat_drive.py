@@ -437,3 +437,25 @@ def test_dc_cycle_the_drive_does_not_take_is_a_clear_error(start_segment, make_w
     status = hd2.wait_status(lambda s: 'accepts cycle times' in s.stop_reason, 10.0,
                              'cycle refused')
     assert not status.online and 'not transport.cycle_time 3000 us' in status.stop_reason
+
+
+def test_slave_found_by_station_alias(start_segment, make_wheel):
+    """drive.station_alias finds the slave whatever its position (unit_id is only a key)."""
+    import dataclasses
+    sim = start_segment([IMO_HD2_EC_TX508, dataclasses.replace(IMO_HD2_EC_TX508, alias=0x0A2)])
+    wheel = make_wheel('imo_hd2', unit_id=7, auto_enable=True, **{'drive.station_alias': 0xA2})
+    wheel.wait_status(lambda s: s.online, 10.0, 'online')
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                      'running')
+    assert sim.drive(1)['velocity_rpm'] > 50.0 and sim.drive(0)['velocity_rpm'] == 0.0
+
+
+def test_a_station_alias_nobody_has_is_named(start_segment, make_wheel):
+    import dataclasses
+    start_segment([IMO_HD2_EC_TX508, dataclasses.replace(IMO_HD2_EC_TX508, alias=0x0A2)])
+    wheel = make_wheel('imo_hd2', unit_id=3, **{'drive.station_alias': 0x0B0})
+    status = wheel.wait_status(lambda s: 'station alias 0x00B0' in s.stop_reason, 10.0,
+                               'alias error')
+    assert not status.online
+    assert 'aliases by position: 1: 0x0000, 2: 0x00A2' in status.stop_reason

@@ -77,6 +77,9 @@ class EthercatDrive:
                            "objects; 0 = the profile's"),
         TransportParameter('transition_timeout', 1.0, 's a CiA 402 transition may take before '
                            'it is reported as stuck'),
+        TransportParameter('station_alias', 0, 'find the slave by its configured station '
+                           'alias (SII) instead of its position; 0 = transport.unit_id is the '
+                           'position (1 = first slave)'),
     )
 
     @classmethod
@@ -132,7 +135,7 @@ class EthercatDrive:
             vendor_id=ident.vendor_id, product_code=ident.product_code,
             device_name=ident.device_name, fixed_mapping=spec.fixed_mapping, startup=startup,
             sync_cycles_s=tuple(c / 1e6 for c in spec.sync_cycles_us), dc=spec.dc,
-            free_run=spec.free_run))
+            free_run=spec.free_run, alias=int(values['station_alias'])))
         self.last_setpoint_raw = 0
         #: the host-loss protection configure() found in the slave (None: not connected)
         self.protection_applied: HostLossProtection | None = None

@@ -746,7 +746,9 @@ class SlaveSetup:
     """What a drive needs of its slave, given at attach (plain values, no drive knowledge).
 
     ``position`` is 1-based in line order, as SOEM and configuration tools number
-    slaves. Identity values of None are not checked; ``device_name`` is checked
+    slaves; with ``alias`` set it is only the drive's key (its unit), and the slave is
+    the one whose configured station alias (SII word 4) is ``alias``.
+    Identity values of None are not checked; ``device_name`` is checked
     only when given. ``startup`` SDO writes happen at PRE-OP, after the PDO
     assignment and before SAFE-OP; ``safe_outputs`` are sent while no drive owns
     the slave (closed, lost), so a returning slave never sees a stale command.
@@ -763,6 +765,7 @@ class SlaveSetup:
     fixed_mapping: bool = False
     startup: tuple[tuple[int, int, bytes], ...] = ()
     sync_cycles_s: tuple[float, ...] = ()      # SYNC0 cycles the slave accepts (empty: any)
+    alias: int = 0                             # find the slave by its SII station alias
     dc: bool = True                            # the slave supports DC SYNC0
     free_run: bool = True
 
@@ -805,6 +808,7 @@ class EthercatTransport(Transport):
         self._holds: dict[int, float] = {}
         self._errors: dict[int, str] = {}          # position -> why it cannot be used
         self._open_units: set[int] = set()
+        self._where: dict[int, int] = {}          # unit -> 1-based position (alias lookup)
         self._segment: EthercatSegment | None = None
         self._lock = threading.RLock()
 
@@ -884,8 +888,9 @@ class EthercatTransport(Transport):
             self._holds[unit] = hold_s
             segment = self._segment
             setup = self._setups.get(unit)
-        if segment is not None and setup is not None and unit <= len(segment.slaves):
-            segment.slave(unit - 1).guard_outputs(setup.safe_outputs, hold_s)
+        position = self._where.get(unit, unit)
+        if segment is not None and setup is not None and position <= len(segment.slaves):
+            segment.slave(position - 1).guard_outputs(setup.safe_outputs, hold_s)
 
     def outputs_held(self, unit: int) -> int:
         slave = self._slave(unit, check=False)
@@ -917,13 +922,17 @@ class EthercatTransport(Transport):
             segment = EthercatSegment(settings, on_slave_lost=self._on_lost)
             try:
                 identities = segment.open()
-                for position, setup in sorted(self._setups.items()):
-                    self._prepare(segment, identities, setup)
+                self._locate(segment)
+                for unit, setup in sorted(self._setups.items()):
+                    if unit not in self._errors:
+                        self._prepare(segment, identities, setup, self._where[unit])
                 self._check_sync(segment)
                 # no SYNC0 for a slave without DC, nor for one its drive cannot use (a
                 # refused cycle would keep the whole segment below SAFE-OP)
-                free_running = frozenset(position - 1 for position, setup in self._setups.items()
-                                         if not setup.dc or position in self._errors)
+                free_running = frozenset(self._where[unit] - 1
+                                         for unit, setup in self._setups.items()
+                                         if unit in self._where and
+                                         (not setup.dc or unit in self._errors))
                 try:
                     segment.start(free_running)
                 except AlStateError as exc:
@@ -941,28 +950,54 @@ class EthercatTransport(Transport):
                     raise EthercatError(f'{self.description}: {exc}') from exc
                 raise
             self._segment = segment
-            for position, setup in self._setups.items():
-                if position not in self._errors:
+            for unit, setup in self._setups.items():
+                if unit not in self._errors:
                     try:
-                        slave = segment.slave(position - 1)
+                        slave = segment.slave(self._where[unit] - 1)
                         slave.set_outputs(setup.safe_outputs)
-                        slave.guard_outputs(setup.safe_outputs, self._holds.get(position, 0.0))
+                        slave.guard_outputs(setup.safe_outputs, self._holds.get(unit, 0.0))
                     except ValueError as exc:       # mapped other than the drive expects
-                        self._errors[position] = str(exc)
+                        self._errors[unit] = str(exc)
+
+    def _locate(self, segment: EthercatSegment) -> None:
+        """Find each attached slave: by position, or by its station alias (SII word 4)."""
+        self._where.clear()
+        aliases: list[int] | None = None
+        taken: dict[int, int] = {}
+        for unit, setup in sorted(self._setups.items()):
+            position = unit
+            if setup.alias:
+                if aliases is None:
+                    aliases = [_sii_alias(slave) for slave in segment.slaves]
+                matches = [n + 1 for n, alias in enumerate(aliases) if alias == setup.alias]
+                if len(matches) != 1:
+                    shown = ', '.join(f'{n + 1}: 0x{a:04X}' for n, a in enumerate(aliases))
+                    self._errors[unit] = (
+                        f'{"no" if not matches else "more than one"} EtherCAT slave with '
+                        f'station alias 0x{setup.alias:04X} on {self.settings.interface} '
+                        f'(aliases by position: {shown})')
+                    continue
+                position = matches[0]
+            if position in taken:
+                self._errors[unit] = (f'EtherCAT slave {position} is already driven by unit '
+                                      f'{taken[position]}')
+                continue
+            taken[position] = unit
+            self._where[unit] = position
 
     def _prepare(self, segment: EthercatSegment, identities: list[SlaveIdentity],
-                 setup: SlaveSetup) -> None:
-        position = setup.position
+                 setup: SlaveSetup, position: int) -> None:
+        unit = setup.position
         if position > len(identities):
             found = ', '.join(f'{i.position + 1}: {i.name}' for i in identities)
-            self._errors[position] = (f'no EtherCAT slave at position {position}: the segment '
-                                      f'on {self.settings.interface} has {len(identities)} '
-                                      f'({found})')
+            self._errors[unit] = (f'no EtherCAT slave at position {position}: the segment '
+                                  f'on {self.settings.interface} has {len(identities)} '
+                                  f'({found})')
             return
         ident = identities[position - 1]
         problem = identity_mismatch(ident, setup)
         if problem:
-            self._errors[position] = problem
+            self._errors[unit] = problem
             return
         try:
             if not setup.fixed_mapping:
@@ -974,29 +1009,30 @@ class EthercatTransport(Transport):
             for index, subindex, data in setup.startup:
                 slave.sdo_write(index, subindex, data)
         except (TransportError, ProtocolException) as exc:
-            self._errors[position] = f'slave {position} set-up at PRE-OP failed: {exc}'
+            self._errors[unit] = f'slave {position} set-up at PRE-OP failed: {exc}'
 
     def _check_sync(self, segment: EthercatSegment) -> None:
         cycle = self.settings.cycle_time_s
-        for position, setup in self._setups.items():
-            if position in self._errors:
+        for unit, setup in self._setups.items():
+            if unit in self._errors:
                 continue
+            slave = f'slave {self._where.get(unit, unit)}'
             if self.settings.sync_mode is SyncMode.DC and not setup.dc:
-                self._errors[position] = (f'slave {position} has no DC sync (free run only): '
-                                          'set transport.sync_mode free_run')
+                self._errors[unit] = (f'{slave} has no DC sync (free run only): set '
+                                      'transport.sync_mode free_run')
             elif self.settings.sync_mode is SyncMode.FREE_RUN and not setup.free_run:
-                self._errors[position] = (f'slave {position} does not run free: set '
-                                          'transport.sync_mode dc')
+                self._errors[unit] = f'{slave} does not run free: set transport.sync_mode dc'
             elif self.settings.sync_mode is SyncMode.DC and setup.sync_cycles_s and not any(
                     abs(cycle - c) < 1e-9 for c in setup.sync_cycles_s):
                 allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
-                self._errors[position] = (f'slave {position} accepts cycle times {allowed}, not '
-                                          f'transport.cycle_time {cycle * 1e6:g} us')
+                self._errors[unit] = (f'{slave} accepts cycle times {allowed}, not '
+                                      f'transport.cycle_time {cycle * 1e6:g} us')
 
     def _on_lost(self, position: int) -> None:
         # A lost slave gets its safe outputs, so that it never sees the last command
         # again when it comes back before its drive has reconnected.
-        setup = self._setups.get(position + 1)
+        unit = next((u for u, p in self._where.items() if p == position + 1), None)
+        setup = self._setups.get(unit) if unit is not None else None
         segment = self._segment
         if setup is not None and segment is not None:
             try:
@@ -1025,9 +1061,10 @@ class EthercatTransport(Transport):
             self._open_units.discard(unit)
             setup = self._setups.get(unit)
             segment = self._segment
-            if segment is not None and setup is not None and unit <= len(segment.slaves):
+            position = self._where.get(unit, unit)
+            if segment is not None and setup is not None and position <= len(segment.slaves):
                 try:
-                    segment.slave(unit - 1).set_outputs(setup.safe_outputs)
+                    segment.slave(position - 1).set_outputs(setup.safe_outputs)
                 except ValueError:
                     pass
             if not self._open_units:
@@ -1048,11 +1085,12 @@ class EthercatTransport(Transport):
             if not check:
                 return None
             raise EthercatError(f'{self.description} is not open')
-        if not 1 <= unit <= len(segment.slaves):
+        position = self._where.get(unit, unit)
+        if not 1 <= position <= len(segment.slaves):
             if not check:
                 return None
-            raise EthercatError(f'no EtherCAT slave at position {unit}')
-        return segment.slave(unit - 1)
+            raise EthercatError(f'no EtherCAT slave at position {position}')
+        return segment.slave(position - 1)
 
     def write_outputs(self, unit: int, data: bytes) -> None:
         """Send ``data`` as slave ``unit``'s RxPDO bytes from the next cycle on."""
@@ -1127,9 +1165,17 @@ class EthercatTransport(Transport):
         return slave.identity if slave is not None else None
 
 
+def _sii_alias(slave: EthercatSlave) -> int:
+    """Return the configured station alias of a slave's SII (word 4; 0 = none)."""
+    try:
+        return int.from_bytes(bytes(slave._soem.eeprom_read(4))[:2], 'little')
+    except Exception:  # noqa: BLE001 - an unreadable SII has no alias to match
+        return 0
+
+
 def identity_mismatch(ident: SlaveIdentity, setup: SlaveSetup) -> str:
     """Say why a slave is not the one a drive expects ('' when it is)."""
-    where = f'EtherCAT slave {setup.position} ({ident.name!r})'
+    where = f'EtherCAT slave {ident.position + 1} ({ident.name!r})'
     wrong = []
     if setup.vendor_id is not None and ident.vendor_id != setup.vendor_id:
         wrong.append(f'vendor 0x{ident.vendor_id:X}, not 0x{setup.vendor_id:X}')

@@ -105,6 +105,7 @@ class DriveSpec:
     free_run: bool = True
     eeprom_read_bytes: int = 8
     function_codes: tuple[tuple[int, int], ...] = ()  # vendor function-code access 0x2000
+    alias: int = 0                                    # configured station alias (SII word 4)
     objects: tuple[ObjectSpec, ...] = ()              # vendor objects and overrides
     sources: tuple[str, ...] = field(default=(), compare=False)
 
@@ -562,6 +563,7 @@ def sii_data(spec: DriveSpec) -> SiiData:
                              sm if pdo.index in assigned else 0xFF) for pdo in pdos)
 
     return SiiData(
+        alias=spec.alias,
         vendor_id=spec.vendor_id, product_code=spec.product_code, revision=spec.revision,
         serial=spec.serial, rx_mailbox=(rx_offset, rx_size), tx_mailbox=(tx_offset, tx_size),
         strings=(spec.name,),
