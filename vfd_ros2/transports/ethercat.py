@@ -919,7 +919,8 @@ class EthercatTransport(Transport):
             active = [s for s in watchdogs if s > 0]
             watchdog = min(active) if active else (0.0 if watchdogs else None)
             settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': watchdog})
-            segment = EthercatSegment(settings, on_slave_lost=self._on_lost)
+            segment = EthercatSegment(settings, on_slave_lost=self._on_lost,
+                                      on_slave_returned=self._on_returned)
             try:
                 identities = segment.open()
                 self._locate(segment)
@@ -1039,6 +1040,19 @@ class EthercatTransport(Transport):
                 segment.slave(position).set_outputs(setup.safe_outputs)
             except ValueError:
                 pass
+
+    def _on_returned(self, position: int) -> None:
+        # A slave that was powered off comes back with its ESC defaults: set its SM
+        # watchdog again (its drive reads it back and reports it when it reconnects).
+        unit = next((u for u, p in self._where.items() if p == position + 1), None)
+        segment = self._segment
+        seconds = self._watchdogs.get(unit) if unit is not None else None
+        if segment is None or seconds is None:
+            return
+        try:
+            segment._set_watchdog(segment.slave(position), seconds)
+        except TransportError as exc:
+            log.warning('EtherCAT slave %d: SM watchdog not set again: %s', position + 1, exc)
 
     def open_slave(self, unit: int) -> None:
         """Open the segment if needed and check that slave ``unit`` is usable (in OP)."""
