@@ -468,3 +468,10 @@ def test_a_station_alias_nobody_has_is_named(start_segment, make_wheel):
                                'alias error')
     assert not status.online
     assert 'aliases by position: 1: 0x0000, 2: 0x00A2' in status.stop_reason
+
+
+def test_no_slaves_on_the_segment_is_a_clear_error(make_wheel):
+    wheel = make_wheel('imo_hd2')                     # the veth exists, nothing answers on it
+    status = wheel.wait_status(lambda s: 'no EtherCAT slave answered' in s.stop_reason, 15.0,
+                               'no slaves')
+    assert not status.online
