@@ -311,8 +311,9 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         assert sim.drive(1)['velocity_rpm'] == 0.0 or sim.drive(1)['state'] != \
             'OPERATION_ENABLED'
         wait_for(lambda: both_at(1.0), 8.0, 'both moving again on fresh commands')
-        # powered off and on: the slave comes back with the ESC's default watchdog; the
-        # transport sets drive_comm_timeout again
+        # powered off and on: the slave comes back with the ESC's default watchdog and its
+        # default PDO mapping and mode; the transport writes its set-up and watchdog again
+        left_reconnects = left.state.reconnects
         sim.power_cycle(1)
         wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
                  'right offline after the power cycle')
@@ -320,6 +321,10 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
                  'right back after the power cycle')
         assert sim.esc(1)['watchdog_s'] == pytest.approx(0.3, abs=0.001)
         assert right.state.protection.timeout == pytest.approx(0.3)
+        assert sim.drive(1)['mode'] == 9                  # csv written again at PRE-OP
+        # by the supervisor, in place: the left wheel never went offline meanwhile
+        assert left.state.online and left.state.reconnects == left_reconnects
+        wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
     finally:
         bus.destroy_node()
         executor.shutdown(timeout_sec=1.0)

@@ -959,6 +959,42 @@ class EthercatTransport(Transport):
                         slave.guard_outputs(setup.safe_outputs, self._holds.get(unit, 0.0))
                     except ValueError as exc:       # mapped other than the drive expects
                         self._errors[unit] = str(exc)
+                        continue
+                    # SOEM runs this when it reconfigures the slave (after a power cycle,
+                    # at PRE-OP): what was written there at start is written again
+                    slave._soem.config_func = self._preop_hook(slave, setup)
+
+    @staticmethod
+    def _preop_hook(slave: EthercatSlave, setup: SlaveSetup) -> Callable[[int], None]:
+        """Return SOEM's PRE-OP -> SAFE-OP hook that writes the slave's set-up again.
+
+        Runs in the supervisor's reconfiguration (its state lock held, the process-data
+        thread does not use the mailbox), so it talks to pysoem directly; a failure is
+        logged and the slave then stays below SAFE-OP with its AL status code.
+        """
+        def write(index: int, subindex: int, data: bytes) -> None:
+            slave._soem.sdo_write(index, subindex, bytes(data))
+
+        def hook(position: int) -> None:
+            try:
+                if not setup.fixed_mapping:
+                    for index, entries in setup.pdos.mappings.items():
+                        write(index, 0, b'\x00')
+                        for sub, entry in enumerate(entries, 1):
+                            write(index, sub, struct.pack('<I', entry))
+                        write(index, 0, bytes([len(entries)]))
+                    for assign, indices in ((0x1C12, setup.pdos.rx), (0x1C13, setup.pdos.tx)):
+                        write(assign, 0, b'\x00')
+                        for sub, index in enumerate(indices, 1):
+                            write(assign, sub, struct.pack('<H', index))
+                        write(assign, 0, bytes([len(indices)]))
+                for index, subindex, data in setup.startup:
+                    write(index, subindex, data)
+                log.info('EtherCAT slave %d: PDO set-up written again', position + 1)
+            except Exception as exc:  # noqa: BLE001 - pysoem raises several kinds here
+                log.warning('EtherCAT slave %d: PDO set-up not written again: %r',
+                            position + 1, exc)
+        return hook
 
     def _locate(self, segment: EthercatSegment) -> None:
         """Find each attached slave: by position, or by its station alias (SII word 4)."""

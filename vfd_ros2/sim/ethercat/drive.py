@@ -198,6 +198,11 @@ class Cia402VelocityDrive:
 
     def __init__(self, spec: DriveSpec) -> None:
         self.spec = spec
+        self.power_on()
+
+    def power_on(self) -> None:
+        """Start as after power-up: defaults everywhere (PDO mappings written in PRE-OP lost)."""
+        spec = self.spec
         self.od = ObjectDictionary()
         for item in standard_objects(spec):
             self.od.add(_entry(item))

@@ -83,8 +83,16 @@ class Segment:
         self._update_links()
 
     def power_cycle(self, position: int) -> None:
-        """Switch slave ``position`` off and on: all its registers reset (INIT, address 0)."""
-        self.escs[position].power_on(time.monotonic_ns(), time.monotonic())
+        """Switch slave ``position`` off and on: all its registers reset (INIT, address 0).
+
+        The device behind it restarts too (its application's ``power_on``, if any): what
+        the master wrote to it (PDO mappings, modes) is gone, as on a real drive.
+        """
+        esc = self.escs[position]
+        power_on = getattr(esc.app, 'power_on', None)
+        if power_on is not None:
+            power_on()
+        esc.power_on(time.monotonic_ns(), time.monotonic())
 
     def process(self, frame: bytes, now_ns: int | None = None) -> bytes | None:
         """Return the frame as it comes back to the master, or None if none comes back."""
