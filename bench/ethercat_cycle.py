@@ -23,7 +23,10 @@ import time
 from pathlib import Path
 
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')    # no ROS here; the rule
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+# Appended: with the environment active vfd_ros2 comes from the colcon install (it has the
+# generated messages the latency case needs); the bench package from this checkout.
+if str(Path(__file__).resolve().parent.parent) not in sys.path:
+    sys.path.append(str(Path(__file__).resolve().parent.parent))
 
 from vfd_ros2.sim.ethercat.catalog import BONENG_MH_EC, IMO_HD2_EC_TX508  # noqa: E402
 from vfd_ros2.sim.ethercat.segment import SimulatedSegment  # noqa: E402
@@ -94,6 +97,80 @@ def run_case(drives: int, cycle_s: float, duration: float, sync: SyncMode,
         }
     finally:
         netns.destroy_veth_link(link)
+
+
+def command_latency(drives: int, cycle_s: float, commands: int = 300,
+                    rate: float = 50.0) -> dict:
+    """Publish ~/velocity_command -> the new RxPDO bytes handed to the process-data thread.
+
+    Drive nodes exactly as bus_node builds them (``bench.cases.NodeBus``) on a simulated
+    segment of HD2 drives; a sampler thread reads drive 1's output bytes every 0.2 ms and
+    stamps the first appearance of each command's raw velocity. The frame leaves within
+    one more cycle (the thread copies the outputs at its next wake-up): ``wire_bound_ms``.
+    """
+    import statistics
+    import threading
+
+    from std_msgs.msg import Float64
+
+    from bench.cases import NodeBus
+
+    link = netns.create_veth_link('benchlat')
+    try:
+        with SimulatedSegment(link, [IMO_HD2_EC_TX508] * drives):
+            bus = NodeBus('imo_hd2', drives, {
+                'transport.type': 'ethercat', 'transport.interface': link.master_interface,
+                'transport.namespace': link.namespace, 'transport.cycle_time': cycle_s},
+                control_rate=rate)
+            try:
+                bus.wait_online()
+                drive = bus.controllers[0].drive
+                transport = drive.transport
+                seen: list[tuple[float, int]] = []
+                stop = threading.Event()
+
+                def sample() -> None:
+                    last = None
+                    while not stop.is_set():
+                        data = transport._slave(1).outputs()       # noqa: SLF001
+                        raw = int.from_bytes(data[2:6], 'little', signed=True)
+                        if raw != last:
+                            seen.append((time.monotonic(), raw))
+                            last = raw
+                        time.sleep(0.0002)
+                sampler = threading.Thread(target=sample, daemon=True)
+                sampler.start()
+                sent = []
+                period = 1.0 / rate
+                for index in range(commands):
+                    velocity = 0.5 + 0.01 * (index % 200)
+                    raw = drive._native(velocity)                  # noqa: SLF001
+                    sent.append((time.monotonic(), raw))
+                    bus.publishers[0].publish(Float64(data=velocity))
+                    time.sleep(period)
+                time.sleep(0.2)
+                stop.set()
+                sampler.join(1.0)
+            finally:
+                bus.close()
+    finally:
+        netns.destroy_veth_link(link)
+    latencies = []
+    for published, raw in sent:
+        hit = next((t for t, value in seen if value == raw and published <= t < published + 1),
+                   None)
+        if hit is not None:
+            latencies.append(1e3 * (hit - published))
+    latencies.sort()
+    return {
+        'case': f'latency x{drives} {cycle_s * 1e3:g} ms', 'drives': drives,
+        'cycle_ms': cycle_s * 1e3, 'command_rate_hz': rate, 'commands': commands,
+        'matched': len(latencies),
+        'median_ms': round(statistics.median(latencies), 3) if latencies else None,
+        'p99_ms': round(latencies[int(0.99 * (len(latencies) - 1))], 3) if latencies else None,
+        'max_ms': round(latencies[-1], 3) if latencies else None,
+        'wire_bound_ms': round(cycle_s * 1e3, 3),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -163,6 +163,41 @@ def render_table(results: dict[str, Any]) -> str:
                      '≤ 50 % of one core)\n\n' + _table(
                          ['drives', 'baud', 'cycles/s', 'wire max', 'ratio', 'line busy',
                           'CPU %', 'start-up to all online s', 'targets'], rows))
+    ethercat = results.get('ethercat')
+    if ethercat is not None:
+        if 'skipped' in ethercat:
+            parts.append(f"**7. EtherCAT**: skipped — {ethercat['skipped']}")
+        else:
+            rows = []
+            for r in ethercat.get('rows', []):
+                if 'error' in r:
+                    rows.append([str(r['drives']), _fmt(r['cycle_ms'], 0),
+                                 'error: ' + r['error']] + [''] * 6)
+                    continue
+                rows.append([str(r['drives']), _fmt(r['cycle_ms'], 0),
+                             _fmt(r['achieved_cycle_ms'], 3), str(r['missed']),
+                             f"{r['wkc_errors']}/{r['lost_frames']}",
+                             f"{r['jitter_p50_us']:.0f}/{r['jitter_p99_us']:.0f}/"
+                             f"{r['jitter_max_us']:.0f}",
+                             f"{r['master_cpu_pct']}/{r['cycle_thread_cpu_pct']}",
+                             _fmt(r['sim_cpu_pct'], 0),
+                             f"{r['sim_frame_us_p50']}/{r['sim_frame_us_p99']}"])
+            parts.append(f"**7. EtherCAT** (SOEM master ↔ simulated segment over a veth pair, "
+                         f"free run, {ethercat.get('window_s', '?'):g} s per case; target 4 "
+                         'drives at 2 ms, 0 missed)\n\n' + _table(
+                             ['drives', 'cycle ms', 'achieved ms', 'missed', 'WKC err/lost',
+                              'jitter p50/p99/max µs', 'CPU % master/cycle thread',
+                              'CPU % sim', 'sim frame p50/p99 µs'], rows))
+            rows = [[r.get('case', ''), str(r.get('matched', r.get('error', ''))),
+                     _fmt(r.get('median_ms'), 2), _fmt(r.get('p99_ms'), 2),
+                     _fmt(r.get('max_ms'), 2), _fmt(r.get('wire_bound_ms'), 1)]
+                    for r in ethercat.get('latency', [])]
+            if rows:
+                parts.append('**7b. EtherCAT command latency** (~/velocity_command published → '
+                             'the new RxPDO bytes handed to the process-data thread; the frame '
+                             'leaves within one more cycle)\n\n' + _table(
+                                 ['case', 'matched', 'median ms', 'p99 ms', 'max ms',
+                                  '+ ≤ ms to the wire'], rows))
     meta = results.get('meta', {})
     parts.append(f"_{meta.get('mode', '')} run, {meta.get('date', '')}, "
                  f"{meta.get('cpus', '?')} CPUs, Python {meta.get('python', '')}, pymodbus "
@@ -280,4 +315,16 @@ BOUNDS = """### Targets and what bounds them
   Start-up to all online is bounded by design: a bus connects one offline drive per
   cycle, so every online drive stays addressed well within its comm-loss timeout
   (issue 9), and a cycle of n online drives takes n x ~30 ms at 115200.
+- **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not met on this machine; 1 ms
+  reported as measured.** The plan runs 10 s per case (not 60 s) to keep the bench near 10
+  minutes. The process-data thread (`EthercatSegment._cycle`) is a Python loop that sleeps
+  to an absolute schedule and skips whole slots when it wakes more than a period late
+  (counted as missed). Its own cost is small (~4 % of a core at 2 ms, ~6 % at 1 ms); what
+  bounds it is wake-up latency on a 2-core machine shared with the simulated segment (a
+  Python process answering every frame, 15-30 % of a core) and other work: p50 jitter is
+  ~0.1 ms, p99 1-3 ms, max 9-26 ms. Lost frames are frames that did not come back within
+  the receive timeout (0.8 × the cycle) because the simulator was descheduled. What would
+  move it: `transport.realtime_priority` style SCHED_FIFO for the process-data thread
+  (`SegmentSettings.realtime_priority`, `bench/ethercat_cycle.py --rt`), an isolated core,
+  and a real ESC (hardware answers in microseconds, not a Python process).
 """

@@ -82,3 +82,12 @@ def test_canopen_demo():
     output = run_demo('--canopen')
     assert 'CiA 402 drives on a virtual CAN bus' in output
     assert 'both wheels followed the profile' in output
+
+
+def test_ethercat_demo():
+    """Run demo --ethercat: two simulated HD2 drives on one EtherCAT segment, one bus_node."""
+    from ethercat_support import require_segment_support
+    require_segment_support()
+    output = run_demo('--ethercat')
+    assert 'one bus_node serving both' in output
+    assert 'both wheels followed the profile' in output

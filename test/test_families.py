@@ -140,7 +140,7 @@ def test_comm_loss_and_recovery(make_harness, family):
 
 def test_every_family_is_covered():
     assert {'boneng_am', 'boneng_mh', 'veichi_ehs100', 'kinco_ec', 'imo_hd2'} <= set(FAMILIES)
-    assert load_profile('imo_hd2').transports == ('modbus_tcp',)
+    assert load_profile('imo_hd2').transports == ('modbus_tcp', 'ethercat')   # TCP card first
 
 
 @pytest.mark.parametrize('family', [f for f in FAMILIES if load_profile(f).setpoints])

@@ -15,6 +15,11 @@ and exits (0 if both wheels followed the profile).
   demo --canopen    the same profile as the default on two simulated CiA 402 drives on one
                     CAN bus (python-can's in-process virtual bus, so the simulated drives
                     and the drive nodes run in this process)
+  demo --ethercat   the same profile on two simulated IMO HD2 EC-TX508 drives on one
+                    EtherCAT segment (emulated slave controllers answering real frames on a
+                    veth pair in a network namespace; needs root or CAP_NET_ADMIN +
+                    CAP_NET_RAW), both driven by one bus_node: one SOEM master, one
+                    process-data thread
 """
 
 from __future__ import annotations
@@ -239,6 +244,56 @@ def _start_canopen_wheels(wheels: list[str]) -> tuple[object, list[Node], object
     return bus, nodes, executor
 
 
+def _start_ethercat_wheels(wheels: list[str], workdir: Path) -> tuple[object, ...]:
+    """Start a simulated segment of two HD2 drives in a namespace and one bus_node on it."""
+    import threading
+
+    import yaml
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter as NodeParameter
+
+    from ..ros.bus_node import BusNode
+    from ..sim.ethercat.catalog import IMO_HD2_EC_TX508
+    from ..sim.ethercat.segment import SimulatedSegment
+    from ..transports import netns
+
+    reason = netns.namespace_support()
+    if reason:
+        raise RuntimeError(f'--ethercat needs network namespaces: {reason}')
+    link = netns.create_veth_link('demo')
+    try:
+        segment = SimulatedSegment(link, [IMO_HD2_EC_TX508] * len(wheels))
+    except BaseException:
+        netns.destroy_veth_link(link)
+        raise
+    config = workdir / 'ethercat_bus.yaml'
+    config.write_text(yaml.safe_dump({
+        'bus': {'name': 'ec0', 'transport.type': 'ethercat',
+                'transport.interface': link.master_interface,
+                'transport.namespace': link.namespace, 'transport.cycle_time': 0.002,
+                'control_rate': 50.0},
+        'drives': {wheel: {'namespace': f'/agv/{wheel}', 'drive.profile': 'imo_hd2',
+                           'transport.unit_id': unit, 'gear_ratio': 10.0,
+                           'invert_direction': unit == 2, 'max_velocity': 5.0}
+                   for unit, wheel in enumerate(wheels, start=1)}}))
+    bus = BusNode(parameter_overrides=[NodeParameter('config_file', value=str(config))])
+    executor = SingleThreadedExecutor()
+    nodes = [bus, *bus.drive_nodes]
+    for node in nodes:
+        executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    return segment, link, nodes, executor
+
+
+def _stop_ethercat_wheels(started: tuple[object, ...]) -> None:
+    from ..transports import netns
+    segment, link, nodes, executor = started
+    executor.shutdown(timeout_sec=1.0)
+    nodes[0].destroy_node()               # the bus node stops every drive, then the segment
+    segment.close()
+    netns.destroy_veth_link(link)
+
+
 def _start_processes(specs: list[NodeSpec], workdir: Path) -> list[subprocess.Popen]:
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     processes = []
@@ -277,6 +332,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='the bus topology with diff_drive, driven through cmd_vel')
     parser.add_argument('--canopen', action='store_true',
                         help='two simulated CiA 402 drives on one (virtual) CAN bus')
+    parser.add_argument('--ethercat', action='store_true',
+                        help='two simulated HD2 EtherCAT drives on one segment, one bus_node '
+                             '(root)')
     args, ros_args = parser.parse_known_args(argv)
     if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
         print('demo: set ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (scripts/demo does)')
@@ -286,7 +344,17 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(tempfile.mkdtemp(prefix='vfd_demo_'))
     rclpy.init(args=ros_args)
     in_process = None
-    if args.canopen:
+    ethercat = None
+    if args.ethercat:
+        try:
+            ethercat = _start_ethercat_wheels(wheels, workdir)
+        except Exception as exc:  # noqa: BLE001 - reported, not a traceback
+            print(f'demo: {exc}')
+            rclpy.try_shutdown()
+            return 2
+        print('started a simulated EtherCAT segment with 2 HD2 drives (veth in namespace '
+              f'{ethercat[1].namespace}) and one bus_node serving both')
+    elif args.canopen:
         in_process = _start_canopen_wheels(wheels)
         print('started 2 simulated CiA 402 drives on a virtual CAN bus and 2 drive nodes')
     elif not args.attach:
@@ -330,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
             for node in nodes:
                 node.destroy_node()       # each drive is stopped before its bus closes
             bus.stop()
+        if ethercat is not None:
+            _stop_ethercat_wheels(ethercat)
         rclpy.try_shutdown()
         _stop_processes(processes)
     return 0 if ok else 1

@@ -517,9 +517,13 @@ class DriveController:
         first_after_connect, self._check_comm_fault = self._check_comm_fault, False
         if not fault.active or self.intent.fault_latched:
             return
+        # The fault the drive raises when the host falls silent: the drive class may
+        # name it for its bus (EtherCAT: the SM watchdog's), else the profile's.
         spec = self.drive.profile.comm_timeout
-        own_absence = spec is not None and (fault.code, fault.subcode) == \
-            (spec.fault_code, spec.fault_subcode)
+        own = getattr(self.drive, 'own_absence_fault', None)
+        if own is None and spec is not None:
+            own = (spec.fault_code, spec.fault_subcode)
+        own_absence = own is not None and (fault.code, fault.subcode) == tuple(own)
         if own_absence and first_after_connect:
             # The drive stopped itself because this host was silent (a restart, an
             # unplugged cable): the stop is written, so the fault is reset once.

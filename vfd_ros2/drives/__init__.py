@@ -21,6 +21,7 @@ ENTRY_POINT_GROUP = 'vfd_ros2.drives'
 BUILTIN_DRIVES: dict[str, str] = {
     'vfd_ros2.transports.base:RegisterTransport': 'vfd_ros2.drives.modbus:ModbusDrive',
     'vfd_ros2.transports.canopen:CanopenTransport': 'vfd_ros2.drives.canopen:CanopenDrive',
+    'vfd_ros2.transports.ethercat:EthercatTransport': 'vfd_ros2.drives.ethercat:EthercatDrive',
 }
 
 __all__ = ['BUILTIN_DRIVES', 'Drive', 'HostLossProtection', 'ParameterValue', 'Reading',

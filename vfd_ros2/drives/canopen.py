@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 from canopen.emcy import EmcyError
@@ -37,15 +36,15 @@ from ..profiles import (
     FaultSpec,
     Parameter,
     Profile,
-    StopAction,
     ValueType,
     describe_fault,
 )
-from ..protocol.cia402 import Command, Goal, State, StatusBit, decode_state, next_command
+from ..protocol.cia402 import State
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter, TransportStats
 from ..transports.canopen import CanopenTransport, ObjectEntry
 from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading, check_write
+from .cia402 import Cia402Control
 
 log = logging.getLogger(__name__)
 
@@ -133,8 +132,8 @@ class CanopenDrive:
                   self.objects.statusword, *self.objects.monitor.values()]
         transport.attach(unit_id, entries(mapped), self.spec.rpdos, self.spec.tpdos)
         self.last_setpoint_raw = 0
-        self.state: State | None = None
-        self.stuck = ''                      # why the drive does not reach the wanted state
+        self.cia = Cia402Control(self.hardware_id, self.transition_timeout,
+                                 self.objects.stop_action)
         #: the host-loss protection configure() could set (None: not connected yet)
         self.protection_applied: HostLossProtection | None = None
         self._host_period = transport.host_heartbeat_period(0.0)
@@ -142,8 +141,14 @@ class CanopenDrive:
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
-        self._goal: Goal | None = None
-        self._goal_since = 0.0
+
+    @property
+    def state(self) -> State | None:
+        return self.cia.state
+
+    @property
+    def stuck(self) -> str:
+        return self.cia.stuck
 
     def _plan_tpdos(self) -> list[list[tuple[str, CanObject]]]:
         """Pack the monitored objects into TPDOs (64 bits each), status + speed first."""
@@ -222,12 +227,10 @@ class CanopenDrive:
 
     def forget_state(self) -> None:
         self._configured = False
-        self.state = None
+        self.cia.reset()
         self._values.clear()
         self._last_controlword = None
         self._emcy_fault = NO_FAULT
-        self._goal = None
-        self.stuck = ''
 
     def _write(self, obj: CanObject, raw: int) -> None:
         self.transport.write_object(self.unit_id, obj.index, obj.subindex, obj.type, raw)
@@ -352,15 +355,6 @@ class CanopenDrive:
                 high = min(high, math.floor(setpoint.maximum / setpoint.scale))
         return min(max(raw, low), high)
 
-    def _goal_for(self, run: bool, idle_action: str) -> Goal:
-        if run:
-            return Goal.OPERATION_ENABLED
-        if idle_action == 'disable':
-            return Goal.SWITCH_ON_DISABLED
-        if idle_action == 'quick_stop' or self.objects.stop_action is StopAction.QUICK_STOP:
-            return Goal.QUICK_STOP
-        return Goal.SWITCHED_ON
-
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None:
         """One control cycle: one RPDO with control word and target velocity.
@@ -389,24 +383,7 @@ class CanopenDrive:
         if not self.cia402:
             commands = self.objects.commands
             return commands['run'] if run else commands.get(idle_action, commands['stop'])
-        goal = self._goal_for(run, idle_action)
-        now = time.monotonic()
-        if goal is not self._goal:
-            self._goal, self._goal_since = goal, now
-            self.stuck = ''
-        command = next_command(self.state, goal)
-        done = {Goal.OPERATION_ENABLED: State.OPERATION_ENABLED,
-                Goal.SWITCHED_ON: None, Goal.QUICK_STOP: None,
-                Goal.SWITCH_ON_DISABLED: State.SWITCH_ON_DISABLED}[goal]
-        if done is not None and self.state is done:
-            self._goal_since = now
-        elif done is not None and now - self._goal_since > self.transition_timeout \
-                and not self.stuck:
-            where = self.state.name if self.state is not None else 'unknown'
-            self.stuck = (f'CiA 402: the drive stays in {where}, not {done.name}, after '
-                          f'{self.transition_timeout:g} s')
-            log.warning('%s: %s', self.hardware_id, self.stuck)
-        return int(command) if command is not None else int(Command.DISABLE_VOLTAGE)
+        return self.cia.controlword(run, idle_action)
 
     def _send_rpdo(self, controlword: int, velocity_raw: int) -> None:
         self.transport.transmit(self.unit_id, 1, [controlword, velocity_raw])
@@ -426,23 +403,19 @@ class CanopenDrive:
     def send_command(self, action: str) -> None:
         """Send one command now (fault_reset: a rising edge of bit 7 on CiA 402 drives)."""
         if self.cia402:
-            values = {'fault_reset': int(Command.FAULT_RESET), 'stop': int(Command.SWITCH_ON),
-                      'disable': int(Command.DISABLE_VOLTAGE),
-                      'quick_stop': int(Command.QUICK_STOP), 'run': int(Command.ENABLE_OPERATION)}
+            words = self.cia.action_words(action, self._last_controlword)
         else:
-            values = dict(self.objects.commands)
-        if action not in values:
-            raise ParameterError(f'{self.profile.name} has no {action!r} command')
-        value = values[action]
-        if self.cia402 and action == 'fault_reset' and (self._last_controlword or 0) & 0x80:
-            self._send_controlword(int(Command.DISABLE_VOLTAGE))     # bit 7 low first
-        self._send_controlword(value)
+            if action not in self.objects.commands:
+                raise ParameterError(f'{self.profile.name} has no {action!r} command')
+            words = [self.objects.commands[action]]
+        for word in words:
+            self._send_controlword(word)
 
     # --- status -----------------------------------------------------------------------
 
     def _update_state(self) -> None:
         if self.cia402 and self._status_role in self._values:
-            self.state = decode_state(self._values[self._status_role])
+            self.cia.update(self._values[self._status_role])
 
     def poll(self, cycle: int, preempt: Callable[[], None] | None = None) -> Reading:
         """Decode what the drive sent (TPDOs, EMCY); raise if its heartbeat is lost."""
@@ -484,7 +457,7 @@ class CanopenDrive:
         self._emcy_fault = self._describe_emcy(active[-1]) if active else NO_FAULT
 
     def _reading(self) -> Reading:
-        reading = Reading(stuck=self.stuck)
+        reading = Reading(stuck=self.cia.stuck)
         monitor = self.objects.monitor
         for role, raw in self._values.items():
             obj = monitor[role]
@@ -498,17 +471,8 @@ class CanopenDrive:
             state = self.state
             if state is not None:
                 reading.raw_words['cia402_state'] = int(state)
-            faulted = state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
-            reading.flags = {
-                'ready': state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
-                                   State.SWITCHED_ON, State.OPERATION_ENABLED),
-                'running': state is State.OPERATION_ENABLED,
-                'fault': faulted,
-                'warning': bool(status is not None and status & StatusBit.WARNING),
-                'at_speed': state is State.OPERATION_ENABLED and bool(
-                    status is not None and status & StatusBit.TARGET_REACHED),
-                'reverse': reading.values.get('motor_speed', 0.0) < 0,
-            }
+            faulted = self.cia.faulted
+            reading.flags = self.cia.flags(status, reading.values.get('motor_speed', 0.0))
         else:
             for name, rule in self.profile.flags.items():
                 if rule.signal in reading.values:

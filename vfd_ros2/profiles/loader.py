@@ -35,10 +35,14 @@ from .model import (
     EffortKind,
     EffortSpec,
     EmcyFault,
+    EmcyMapping,
+    EthercatIdentity,
+    EthercatSpec,
     FaultEntry,
     FaultSpec,
     FlagRule,
     FlagRuleKind,
+    FunctionCodeWindow,
     IdentifyCheck,
     IdentifyExpect,
     IdentifySpec,
@@ -46,6 +50,7 @@ from .model import (
     ModbusSpec,
     ObjectSet,
     Parameter,
+    ParameterAccess,
     Persistence,
     PersistenceKind,
     PositionSource,
@@ -177,6 +182,7 @@ def _object_set(name: str, item: Mapping[str, Any], where: str,
         if mode is not None else None,
         mode_value=int(item.get('mode_value', 0)),
         stop_action=StopAction(item.get('stop_action', 'disable_operation')),
+        controlword_bits=int(item.get('controlword_bits', 0)),
         note=str(item.get('note', '')),
     )
     if object_set.control is ControlStyle.COMMAND_WORD:
@@ -209,6 +215,69 @@ def _canopen(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> Ca
         # 241-251 are reserved; 252/253 answer remote frames only, which the driver never sends
         raise ProfileError(f'canopen.transmission_type {spec.transmission_type}: use 0..240 '
                            '(synchronous) or 254/255 (event-driven)')
+    return spec
+
+
+def _commissioning(items: Any) -> tuple[CommissioningWrite, ...]:
+    return tuple(CommissioningWrite(code=str(item['code']), value=float(item['value']),
+                                    why=str(item.get('why', '')))
+                 for item in items or [])
+
+
+def _ethercat(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> EthercatSpec:
+    identity = item.get('identity') or {}
+    window = item.get('function_codes')
+    own: dict[str, Parameter] = {}
+    names = {p.name for p in parameters.values() if p.name}
+    for raw in item.get('parameters') or ():
+        parameter = _parameter(raw)
+        if parameter.code in parameters or parameter.code in own:
+            raise ProfileError(f'ethercat.parameters: {parameter.code} defined twice')
+        if parameter.index is None:
+            raise ProfileError(f'ethercat.parameters: {parameter.code} needs its CoE index')
+        if parameter.name and parameter.name in names:
+            raise ProfileError(f'ethercat.parameters: readable name {parameter.name!r} used '
+                               'twice')
+        names.add(parameter.name)
+        own[parameter.code] = parameter
+    parameters = {**parameters, **own}      # commissioning may name them
+    comm = item.get('comm_fault')
+    spec = EthercatSpec(
+        identity=EthercatIdentity(
+            vendor_id=identity.get('vendor_id'), product_code=identity.get('product_code'),
+            device_name=str(identity.get('device_name', '')), why=str(identity.get('why', ''))),
+        rx_pdos=tuple(int(i) for i in item['rx_pdos']),
+        tx_pdos=tuple(int(i) for i in item['tx_pdos']),
+        objects=_object_set('ethercat', item['objects'], 'ethercat.objects', parameters),
+        fixed_mapping=bool(item.get('fixed_mapping', False)),
+        free_run=bool(item.get('free_run', True)),
+        dc=bool(item.get('dc', False)),
+        sync_cycles_us=tuple(int(c) for c in item.get('sync_cycles_us') or ()),
+        parameter_access=ParameterAccess(item.get('parameter_access', 'objects')),
+        function_codes=FunctionCodeWindow(
+            read=int(window['read']), read_response=int(window['read_response']),
+            write=int(window['write']), write_response=int(window['write_response']),
+            success=int(window.get('success', 1)),
+            errors={int(k): str(v) for k, v in (window.get('errors') or {}).items()})
+        if window else None,
+        emcy_fault=EmcyFault(item.get('emcy_fault', 'error_code')),
+        emcy_faults=tuple(EmcyMapping(int(m['error_code']), int(m['fault']),
+                                      int(m.get('subcode', 0)), str(m.get('why', '')))
+                          for m in item.get('emcy_faults') or ()),
+        commissioning=_commissioning(item.get('commissioning')),
+        comm_fault=(int(comm['fault']), int(comm.get('subcode', 0))) if comm else None,
+        parameters=own,
+        note=str(item.get('note', '')),
+    )
+    if spec.objects.control is not ControlStyle.CIA402:
+        raise ProfileError('ethercat.objects.control: only cia402 is supported over EtherCAT')
+    if spec.parameter_access is ParameterAccess.FUNCTION_CODES and spec.function_codes is None:
+        raise ProfileError('ethercat.parameter_access function_codes needs '
+                           'ethercat.function_codes')
+    for write in spec.commissioning:
+        if write.code not in parameters:
+            raise ProfileError(f'ethercat.commissioning names {write.code!r}, not in the '
+                               'parameter table')
     return spec
 
 
@@ -373,6 +442,7 @@ def _build(path: Path) -> Profile:
         notes=tuple(str(n) for n in data.get('notes') or []),
         source_file=str(path),
         canopen=_canopen(data['canopen'], parameters) if data.get('canopen') else None,
+        ethercat=_ethercat(data['ethercat'], parameters) if data.get('ethercat') else None,
         identify=_identify(data['identify'], parameters, path.name)
         if data.get('identify') else None,
         position=_position(data.get('position') or {}),
@@ -410,11 +480,14 @@ def _control_owned(profile: Profile) -> dict[str, str]:
         owned[profile.comm_timeout.parameter] = (
             'the comm-loss timeout is written at connect from the drive_comm_timeout '
             'parameter, sized for the bus')
-    if profile.canopen is not None:
+    object_sets = list(profile.canopen.object_sets.values()) if profile.canopen else []
+    if profile.ethercat is not None:
+        object_sets.append(profile.ethercat.objects)
+    if object_sets:
         # CiA 402 objects and their manufacturer twins, in every object set the
         # profile offers (another set may alias the same object).
         indices: dict[tuple[int, int], str] = {}
-        for objects in profile.canopen.object_sets.values():
+        for objects in object_sets:
             for obj, what in ((objects.controlword, 'the controlword'),
                               (objects.target_velocity, 'the target velocity'),
                               (objects.mode_of_operation, 'the mode of operation')):

@@ -9,6 +9,7 @@ CANopen limits. A new family is a new data file, never a new ``if`` in the code.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
@@ -21,11 +22,12 @@ from ..protocol.values import ValueType, WordOrder
 __all__ = [
     'Access', 'CanObject', 'CanopenIdentity', 'CanopenSpec', 'CommTimeoutSpec',
     'CommissioningWrite', 'ControlSpec', 'ControlStyle', 'DirectionMode', 'EffortKind',
-    'EffortSpec', 'EmcyFault', 'FaultEntry', 'FaultSpec', 'FlagRule', 'FlagRuleKind',
-    'IdentifyCheck', 'IdentifyExpect', 'IdentifySpec', 'ModbusIdentity', 'ModbusSpec', 'ObjectSet',
-    'Parameter', 'Persistence', 'PersistenceKind', 'PositionSource', 'PositionSpec', 'Profile',
-    'SerialDefaults', 'Signal', 'SpeedUnit', 'StopAction', 'ValueType', 'VelocitySpec',
-    'WordOrder',
+    'EffortSpec', 'EmcyFault', 'EmcyMapping', 'EthercatIdentity', 'EthercatSpec',
+    'FaultEntry', 'FaultSpec', 'FlagRule', 'FlagRuleKind', 'FunctionCodeWindow',
+    'IdentifyCheck', 'IdentifyExpect', 'IdentifySpec', 'ModbusIdentity', 'ModbusSpec',
+    'ObjectSet', 'Parameter', 'ParameterAccess', 'Persistence', 'PersistenceKind',
+    'PositionSource', 'PositionSpec', 'Profile', 'SerialDefaults', 'Signal', 'SpeedUnit',
+    'StopAction', 'ValueType', 'VelocitySpec', 'WordOrder',
 ]
 
 class Access(str, enum.Enum):
@@ -378,6 +380,9 @@ class ObjectSet:
     mode_of_operation: CanObject | None = None
     mode_value: int = 0
     stop_action: StopAction = StopAction.DISABLE_OPERATION
+    # controlword bits OR-ed into every command (CiA 402 vl mode: bits 4-6 = 0x70,
+    # ramp function generator enable / unlock / use reference)
+    controlword_bits: int = 0
     note: str = ''
 
 
@@ -411,6 +416,88 @@ class CanopenSpec:
             raise ParameterError(
                 f'unknown CANopen object set {key!r}; available: {", ".join(self.object_sets)}')
         return self.object_sets[key]
+
+
+class ParameterAccess(str, enum.Enum):
+    """How an EtherCAT drive's parameters are reached over CoE."""
+
+    OBJECTS = 'objects'                # each parameter's own object (``index``), SDO
+    FUNCTION_CODES = 'function_codes'  # a vendor window: address in, value out (IMO 0x2000)
+
+
+@dataclass(frozen=True)
+class FunctionCodeWindow:
+    """Vendor objects that read and write function codes by address (UINT32 each).
+
+    Read: write ``address << 16`` to ``read``, read ``status << 16 | value`` from
+    ``read_response``; write: ``address << 16 | value`` to ``write``, the result
+    from ``write_response``. ``success`` is the status of a good answer; any
+    other status carries an error code (``errors``: code -> text).
+    """
+
+    read: int
+    read_response: int
+    write: int
+    write_response: int
+    success: int = 0x0001
+    errors: Mapping[int, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EmcyMapping:
+    """A CoE emergency error code that means one of the profile's own faults."""
+
+    error_code: int
+    fault: int
+    subcode: int = 0
+    why: str = ''
+
+
+@dataclass(frozen=True)
+class EthercatIdentity:
+    """What the slave's SII must say (None: the manual does not give it, not checked)."""
+
+    vendor_id: int | None = None
+    product_code: int | None = None
+    device_name: str = ''               # checked only when vendor and product are unknown
+    why: str = ''
+
+
+@dataclass(frozen=True)
+class EthercatSpec:
+    """A CoE (CiA 402 over EtherCAT) drive: identity, process data, sync, parameters, faults.
+
+    The RxPDO carries ``objects.controlword`` then ``objects.target_velocity``; the
+    TxPDO carries ``objects.monitor`` in its order (status word first).
+    """
+
+    identity: EthercatIdentity
+    rx_pdos: tuple[int, ...]            # SM2 assignment 0x1C12
+    tx_pdos: tuple[int, ...]            # SM3 assignment 0x1C13
+    objects: ObjectSet
+    fixed_mapping: bool = False         # the mapping objects are read-only: not written
+    free_run: bool = True
+    dc: bool = False
+    sync_cycles_us: tuple[int, ...] = ()   # cycle times the drive accepts (empty: any)
+    parameter_access: ParameterAccess = ParameterAccess.OBJECTS
+    function_codes: FunctionCodeWindow | None = None
+    emcy_fault: EmcyFault = EmcyFault.ERROR_CODE
+    emcy_faults: tuple[EmcyMapping, ...] = ()
+    commissioning: tuple[CommissioningWrite, ...] = ()
+    # the fault the drive raises when process data stops (its SM watchdog / comm timeout)
+    comm_fault: tuple[int, int] | None = None
+    # Objects reachable only over this bus (no Modbus register), e.g. the BONENG MH EC's
+    # CiA 402 ramps: added to the profile's parameters by the EtherCAT drive only.
+    parameters: Mapping[str, Parameter] = field(default_factory=dict)
+    note: str = ''
+
+    @property
+    def rx_entries(self) -> tuple[CanObject, ...]:
+        return (self.objects.controlword, self.objects.target_velocity)
+
+    @property
+    def tx_entries(self) -> tuple[tuple[str, CanObject], ...]:
+        return tuple(self.objects.monitor.items())
 
 
 class IdentifyExpect(str, enum.Enum):
@@ -513,6 +600,7 @@ class Profile:
     notes: tuple[str, ...] = ()
     source_file: str = ''
     canopen: CanopenSpec | None = None
+    ethercat: EthercatSpec | None = None
     # Registers the control loop writes (command word, setpoints, the comm-loss
     # timeout it manages, CiA 402 objects): code -> what to use instead. The
     # parameter services refuse them, so nothing moves the motor around the loop.
@@ -549,6 +637,19 @@ class Profile:
             if signal.role == role:
                 return signal
         return None
+
+    def extended(self, extra: Mapping[str, Parameter]) -> 'Profile':
+        """Return this profile with ``extra`` parameters added (a bus's own objects)."""
+        if not extra:
+            return self
+        by_name = dict(self._by_name)
+        for code, parameter in extra.items():
+            if parameter.name:
+                by_name[parameter.name] = code
+        return dataclasses.replace(
+            self, parameters={**self.parameters, **extra}, _by_name=by_name,
+            _by_folded_code={**self._by_folded_code,
+                             **{code.casefold(): code for code in extra}})
 
     @property
     def names(self) -> Mapping[str, str]:

@@ -23,6 +23,7 @@ BUILTIN_TRANSPORTS: dict[str, str] = {
     'modbus_rtu': 'vfd_ros2.transports.modbus:ModbusRtuTransport',
     'modbus_tcp': 'vfd_ros2.transports.modbus:ModbusTcpTransport',
     'canopen': 'vfd_ros2.transports.canopen:CanopenTransport',
+    'ethercat': 'vfd_ros2.transports.ethercat:EthercatTransport',
 }
 
 __all__ = [

@@ -18,6 +18,9 @@ One ``EthercatSegment`` owns one ``pysoem.Master`` (one network interface) and:
   and text), PDO assignment/mapping at PRE-OP, outputs/inputs (thread-safe),
   AL state with the AL status code, emergencies.
 
+Positions in this API are 0-based (pysoem's ``master.slaves`` index); messages and
+logs number slaves from 1, as SOEM and configuration tools do.
+
 Every call is bounded in time (SOEM's frame/state/mailbox timeouts, set from the
 settings) and raises the package's errors (``vfd_ros2.errors``): AL state
 failures carry the ETG.1000.6 AL status code and its text.
@@ -38,7 +41,7 @@ import time
 import warnings
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from ..errors import BadFrame, CommTimeout, ProtocolException, TransportError
 from ..protocol.ethercat import (
@@ -49,6 +52,7 @@ from ..protocol.ethercat import (
     al_status_text,
     sdo_abort_text,
 )
+from .base import Transport, TransportParameter
 from .netns import run_in_namespace
 
 try:
@@ -155,7 +159,7 @@ class AlStateError(EthercatError):
         self.code = code
         self.text = al_status_text(code)
         super().__init__(
-            f'slave {position} did not reach {requested.name}: it is {al_state_name(status)}, '
+            f'slave {position + 1} did not reach {requested.name}: it is {al_state_name(status)}, '
             f'AL status code 0x{code:04X} ({self.text})')
 
 
@@ -166,8 +170,9 @@ class SdoAbortError(ProtocolException):
         self.position = position
         self.index = index
         self.subindex = subindex
-        super().__init__(code, sdo_abort_text(code), f'slave {position} 0x{index:04X}:{subindex}')
-        self.args = (f'SDO abort 0x{code:08X} ({self.text}) from slave {position} at '
+        super().__init__(code, sdo_abort_text(code),
+                         f'slave {position + 1} 0x{index:04X}:{subindex}')
+        self.args = (f'SDO abort 0x{code:08X} ({self.text}) from slave {position + 1} at '
                      f'0x{index:04X}:{subindex}',)
 
     def __str__(self) -> str:
@@ -191,6 +196,10 @@ class EthercatSlave:
         self.identity = SlaveIdentity(position, soem_slave.name, soem_slave.man, soem_slave.id,
                                       soem_slave.rev)
         self._outputs = b''
+        self._outputs_time = 0.0
+        self._safe_outputs = b''
+        self._hold_s = 0.0
+        self._held_cycles = 0
         self._inputs = b''
         self._inputs_time = 0.0
         self._emergencies: deque[Emergency] = deque(maxlen=256)
@@ -249,10 +258,33 @@ class EthercatSlave:
     def set_outputs(self, data: bytes) -> None:
         """Send ``data`` (RxPDO bytes) from the next cycle on; the length must match."""
         if len(data) != len(self._outputs):
-            raise ValueError(f'slave {self.position} takes {len(self._outputs)} output bytes, '
+            raise ValueError(f'slave {self.position + 1} takes {len(self._outputs)} output bytes, '
                              f'got {len(data)}')
         with self._segment._io_lock:
             self._outputs = bytes(data)
+            self._outputs_time = time.monotonic()
+
+    def guard_outputs(self, safe: bytes, hold_s: float) -> None:
+        """Send ``safe`` instead of outputs older than ``hold_s`` (0 = never).
+
+        The process-data thread keeps sending whatever was set last; if the code
+        that sets outputs stops (a hung control loop), the slave's SM watchdog
+        never trips. With a guard, outputs nobody refreshed within ``hold_s`` are
+        replaced by ``safe`` (e.g. disable operation, velocity 0) until the next
+        ``set_outputs``.
+        """
+        if hold_s and len(safe) != len(self._outputs):
+            raise ValueError(f'slave {self.position + 1} takes {len(self._outputs)} output bytes, '
+                             f'got {len(safe)} safe ones')
+        with self._segment._io_lock:
+            self._safe_outputs = bytes(safe)
+            self._hold_s = float(hold_s)
+            self._outputs_time = time.monotonic()
+
+    @property
+    def outputs_held(self) -> int:
+        """Cycles in which stale outputs were replaced by the safe ones (since start)."""
+        return self._held_cycles
 
     def outputs(self) -> bytes:
         with self._segment._io_lock:
@@ -335,6 +367,10 @@ class EthercatSegment:
             else:
                 master.open(self.settings.interface)
         except (ConnectionError, OSError, TransportError) as exc:
+            try:
+                master.close()                  # SOEM may keep the socket it made
+            except Exception:  # noqa: BLE001 - best effort on a failed open
+                log.debug('close after a failed open', exc_info=True)
             raise EthercatError(f'cannot open {self.settings.interface}: {exc}') from exc
         self._master = master
         try:
@@ -373,7 +409,7 @@ class EthercatSegment:
                 current = self._assignment(slave, assign)
                 if current != tuple(indices):
                     raise EthercatError(
-                        f'slave {position} has a fixed assignment 0x{assign:04X} = '
+                        f'slave {position + 1} has a fixed assignment 0x{assign:04X} = '
                         f'{[hex(i) for i in current]}; {[hex(i) for i in indices]} was '
                         f'asked for') from exc
                 continue                                    # fixed and already right
@@ -387,8 +423,12 @@ class EthercatSegment:
         return tuple(struct.unpack('<H', slave.sdo_read(assign, sub)[:2])[0]
                      for sub in range(1, count + 1))
 
-    def start(self) -> None:
-        """Map process data, set watchdog and sync, reach SAFE-OP and OP, run the cycle."""
+    def start(self, free_running: frozenset[int] = frozenset()) -> None:
+        """Map process data, set watchdog and sync, reach SAFE-OP and OP, run the cycle.
+
+        In DC mode every slave gets SYNC0 except those in ``free_running``
+        (0-based positions of slaves known to have no DC sync).
+        """
         master = self._require_open()
         settings = self.settings
         cycle_ns = int(settings.cycle_time_s * 1e9)
@@ -399,7 +439,8 @@ class EthercatSegment:
             if not master.config_dc():
                 raise EthercatError('DC sync requested but no slave has distributed clocks')
             for slave in self._slaves:
-                slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
+                if slave.position not in free_running:
+                    slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
         with self._mailbox_lock:
             try:
                 master.config_map()                         # requests SAFE-OP
@@ -510,7 +551,11 @@ class EthercatSegment:
             with self._io_lock:
                 for slave in slaves:
                     if slave._outputs:
-                        slave._soem.output = slave._outputs
+                        if slave._hold_s and woke - slave._outputs_time > slave._hold_s:
+                            slave._soem.output = slave._safe_outputs      # nobody refreshes
+                            slave._held_cycles += 1
+                        else:
+                            slave._soem.output = slave._outputs
             master.send_processdata()
             wkc = master.receive_processdata(receive_us)
             self._cycles += 1
@@ -565,7 +610,7 @@ class EthercatSegment:
                     try:
                         slave.poll_mailbox()
                     except TransportError as exc:
-                        log.debug('mailbox poll of slave %d failed: %s', slave.position, exc)
+                        log.debug('mailbox poll of slave %d failed: %s', slave.position + 1, exc)
 
     def _check_states(self) -> None:
         """SOEM's recovery sequence: re-enter the target state, find lost slaves again."""
@@ -581,11 +626,11 @@ class EthercatSegment:
                 if slave.state is ALState.NONE:            # no answer: gone
                     if not slave.lost:
                         slave.lost = True
-                        log.warning('EtherCAT slave %d lost', slave.position)
+                        log.warning('EtherCAT slave %d lost', slave.position + 1)
                         if self.on_slave_lost:
                             self.on_slave_lost(slave.position)
                     if self.settings.recover and soem.recover(timeout=3000) > 0:
-                        log.info('EtherCAT slave %d found again', slave.position)
+                        log.info('EtherCAT slave %d found again', slave.position + 1)
                         soem.reconfig(timeout=3000)
                     continue
                 if slave.al_status & AL_ERROR_FLAG:        # acknowledge, then go on
@@ -599,7 +644,7 @@ class EthercatSegment:
 
     def _mark_returned(self, slave: EthercatSlave) -> None:
         slave.lost = False
-        log.info('EtherCAT slave %d is back in %s', slave.position, slave.state.name)
+        log.info('EtherCAT slave %d is back in %s', slave.position + 1, slave.state.name)
         if self.on_slave_returned:
             self.on_slave_returned(slave.position)
 
@@ -657,7 +702,7 @@ class EthercatSegment:
             if time.monotonic() > deadline:
                 slave = pending[0]
                 if slave.al_status == 0:
-                    raise CommTimeout(f'slave {slave.position} did not answer while waiting '
+                    raise CommTimeout(f'slave {slave.position + 1} did not answer while waiting '
                                       f'for {state.name}')
                 raise AlStateError(slave.position, state, slave.al_status, slave.al_status_code)
             time.sleep(0.002)
@@ -668,7 +713,7 @@ class EthercatSegment:
             try:
                 slave._soem.set_watchdog('processdata', seconds * 1000.0)
             except (AttributeError, pysoem.WkcError) as exc:
-                raise EthercatError(f'slave {slave.position}: SM watchdog of {seconds} s not '
+                raise EthercatError(f'slave {slave.position + 1}: SM watchdog of {seconds} s not '
                                     f'set: {exc}') from exc
 
     def _mailbox(self, slave: EthercatSlave, what: str, index: int, subindex: int,
@@ -680,14 +725,515 @@ class EthercatSegment:
             except pysoem.SdoError as exc:
                 raise SdoAbortError(slave.position, index, subindex, exc.abort_code) from exc
             except pysoem.WkcError as exc:
-                raise CommTimeout(f'slave {slave.position}: no mailbox answer to {what} '
+                raise CommTimeout(f'slave {slave.position + 1}: no mailbox answer to {what} '
                                   f'(WKC {exc.wkc})') from exc
             except pysoem.MailboxError as exc:
-                raise EthercatError(f'slave {slave.position}: mailbox error {exc.error_code} '
+                raise EthercatError(f'slave {slave.position + 1}: mailbox error {exc.error_code} '
                                     f'({exc.desc}) on {what}') from exc
             except pysoem.PacketError as exc:
-                raise BadFrame(f'slave {slave.position}: unexpected mailbox reply to {what} '
+                raise BadFrame(f'slave {slave.position + 1}: unexpected mailbox reply to {what} '
                                f'(packet error {exc.error_code})') from exc
             except pysoem.Emergency as exc:            # without a callback pysoem raises it
                 slave._on_emergency(exc)
                 return None
+
+
+# -- the transport plugin: one segment shared by the drives on it ------------------------------
+
+
+@dataclass(frozen=True)
+class SlaveSetup:
+    """What a drive needs of its slave, given at attach (plain values, no drive knowledge).
+
+    ``position`` is 1-based in line order, as SOEM and configuration tools number
+    slaves; with ``alias`` set it is only the drive's key (its unit), and the slave is
+    the one whose configured station alias (SII word 4) is ``alias``.
+    Identity values of None are not checked; ``device_name`` is checked
+    only when given. ``startup`` SDO writes happen at PRE-OP, after the PDO
+    assignment and before SAFE-OP; ``safe_outputs`` are sent while no drive owns
+    the slave (closed, lost), so a returning slave never sees a stale command.
+    """
+
+    position: int
+    pdos: PdoConfiguration
+    output_size: int
+    input_size: int
+    safe_outputs: bytes
+    vendor_id: int | None = None
+    product_code: int | None = None
+    device_name: str = ''
+    fixed_mapping: bool = False
+    startup: tuple[tuple[int, int, bytes], ...] = ()
+    sync_cycles_s: tuple[float, ...] = ()      # SYNC0 cycles the slave accepts (empty: any)
+    alias: int = 0                             # find the slave by its SII station alias
+    dc: bool = True                            # the slave supports DC SYNC0
+    free_run: bool = True
+
+
+class EthercatTransport(Transport):
+    """``transport.type: ethercat``: one EtherCAT segment (one NIC) and its slaves.
+
+    Every drive of a bus shares one instance, hence one ``EthercatSegment`` with
+    one process-data thread. The segment is opened (and every attached slave
+    identified, mapped and brought to OP) by the first ``open_slave`` and closed
+    when the last slave is closed; a slave lost and found again meanwhile is
+    brought back by the segment's supervisor. ``unit`` = slave position, 1-based.
+    """
+
+    parameters = (
+        TransportParameter('interface', '', 'network interface of the EtherCAT segment (e.g. '
+                           'enp3s0); raw-socket rights needed (root or CAP_NET_RAW)'),
+        TransportParameter('namespace', '', 'network namespace of the interface (tests); '
+                           "'' = the node's own"),
+        TransportParameter('cycle_time', 0.002, 's per process-data cycle (one thread per '
+                           'segment)'),
+        TransportParameter('sync_mode', 'free_run', 'free_run (slaves on their own clock) or dc '
+                           '(distributed clocks, SYNC0 every cycle_time)'),
+        TransportParameter('state_timeout', 2.0, 's each AL state change may take'),
+        TransportParameter('sdo_timeout', 0.7, 's each SDO exchange may take'),
+        TransportParameter('realtime_priority', 0, 'SCHED_FIFO priority (1..99) of the '
+                           'process-data thread; 0 = normal scheduling (a refusal is logged)'),
+        TransportParameter('stale_after', 0.25, 's without fresh inputs from a slave before it '
+                           'counts as silent (a loaded host may skip some cycles)'),
+    )
+    shared_by_drives = True
+
+    def __init__(self, settings: SegmentSettings, stale_after: float = 0.25) -> None:
+        super().__init__()
+        self.settings = settings
+        self.stale_after = stale_after
+        self.timeout = settings.sdo_timeout_s
+        self._setups: dict[int, SlaveSetup] = {}
+        self._watchdogs: dict[int, float] = {}
+        self._holds: dict[int, float] = {}
+        self._errors: dict[int, str] = {}          # position -> why it cannot be used
+        self._open_units: set[int] = set()
+        self._where: dict[int, int] = {}          # unit -> 1-based position (alias lookup)
+        self._segment: EthercatSegment | None = None
+        self._lock = threading.RLock()
+
+    @classmethod
+    def from_settings(cls, settings: Mapping[str, Any]) -> 'EthercatTransport':
+        interface = str(settings.get('interface', '') or '')
+        if not interface:
+            raise TransportError('transport.interface is empty: name the network interface of '
+                                 'the EtherCAT segment (e.g. enp3s0)')
+        try:
+            mode = SyncMode(str(settings.get('sync_mode', 'free_run')))
+        except ValueError:
+            raise TransportError(f'transport.sync_mode {settings.get("sync_mode")!r}: use '
+                                 'free_run or dc') from None
+        cycle = float(settings.get('cycle_time', 0.002))
+        if not 0.0001 <= cycle <= 0.1:
+            raise TransportError(f'transport.cycle_time {cycle:g} s: use 0.0001..0.1 s')
+        priority = int(settings.get('realtime_priority', 0) or 0)
+        if not 0 <= priority <= 99:
+            raise TransportError(f'transport.realtime_priority {priority}: use 0..99')
+        stale = float(settings.get('stale_after', 0.25))
+        if stale < 2 * cycle:
+            raise TransportError(f'transport.stale_after {stale:g} s must be at least two '
+                                 f'cycles ({2 * cycle:g} s)')
+        return cls(SegmentSettings(
+            interface=interface, namespace=str(settings.get('namespace', '') or '') or None,
+            cycle_time_s=cycle, sync_mode=mode,
+            state_timeout_s=float(settings.get('state_timeout', 2.0)),
+            sdo_timeout_s=float(settings.get('sdo_timeout', 0.7)),
+            realtime_priority=priority or None), stale)
+
+    @property
+    def description(self) -> str:
+        where = f'@{self.settings.namespace}' if self.settings.namespace else ''
+        return f'ethercat:{self.settings.interface}{where}'
+
+    @property
+    def link_notes(self) -> tuple[str, ...]:
+        segment = self._segment
+        if segment is None:
+            return ()
+        stats = segment.stats()
+        notes = []
+        if stats.missed_cycles:
+            notes.append(f'{stats.missed_cycles} missed process-data cycles of '
+                         f'{stats.cycles} ({self.settings.cycle_time_s * 1000:g} ms)')
+        return tuple(notes)
+
+    def exchange_seconds(self, request_bytes: int, reply_bytes: int) -> float:
+        return self.settings.cycle_time_s
+
+    def failed_exchange_seconds(self) -> float:
+        # A drive whose slave is gone fails its connect on the AL state read (one frame,
+        # a few ms), not on an SDO timeout: its drive is offline before any mailbox use.
+        return max(0.02, 5 * self.settings.cycle_time_s)
+
+    # -- drives attach their slaves before the segment opens --------------------------------
+
+    def attach(self, setup: SlaveSetup) -> None:
+        """Register what the drive at ``setup.position`` needs (before the segment opens)."""
+        if setup.position < 1:
+            raise TransportError(f'EtherCAT slave position {setup.position}: positions start '
+                                 'at 1 (the first slave after the master)')
+        with self._lock:
+            if setup.position in self._setups:
+                raise TransportError(f'EtherCAT slave {setup.position} is attached twice')
+            self._setups[setup.position] = setup
+
+    def set_watchdog(self, unit: int, seconds: float, hold_s: float = 0.0) -> None:
+        """Ask for the SM (process-data) watchdog of one slave (0 = off), set at open.
+
+        ``hold_s`` > 0: outputs the drive has not refreshed for that long are replaced
+        by its safe outputs in the process-data thread (see ``guard_outputs``).
+        """
+        with self._lock:
+            self._watchdogs[unit] = seconds
+            self._holds[unit] = hold_s
+            segment = self._segment
+            setup = self._setups.get(unit)
+        position = self._where.get(unit, unit)
+        if segment is not None and setup is not None and position <= len(segment.slaves):
+            segment.slave(position - 1).guard_outputs(setup.safe_outputs, hold_s)
+
+    def outputs_held(self, unit: int) -> int:
+        slave = self._slave(unit, check=False)
+        return slave.outputs_held if slave is not None else 0
+
+    def watchdog(self, unit: int) -> float | None:
+        """Return the SM watchdog time the slave holds now (s; None: unknown)."""
+        slave = self._slave(unit, check=False)
+        if slave is None:
+            return None
+        try:
+            with self._segment._mailbox_lock:              # type: ignore[union-attr]
+                return float(slave._soem.get_watchdog('processdata')) / 1000.0
+        except Exception:  # noqa: BLE001 - pysoem raises several kinds here
+            return None
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the segment: identify, map and start every attached slave (idempotent)."""
+        with self._lock:
+            if self._segment is not None:
+                return
+            self._errors.clear()
+            watchdogs = [s for s in self._watchdogs.values()]
+            active = [s for s in watchdogs if s > 0]
+            watchdog = min(active) if active else (0.0 if watchdogs else None)
+            settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': watchdog})
+            segment = EthercatSegment(settings, on_slave_lost=self._on_lost,
+                                      on_slave_returned=self._on_returned)
+            try:
+                identities = segment.open()
+                self._locate(segment)
+                for unit, setup in sorted(self._setups.items()):
+                    if unit not in self._errors:
+                        self._prepare(segment, identities, setup, self._where[unit])
+                self._check_sync(segment)
+                # no SYNC0 for a slave without DC, nor for one its drive cannot use (a
+                # refused cycle would keep the whole segment below SAFE-OP)
+                free_running = frozenset(self._where[unit] - 1
+                                         for unit, setup in self._setups.items()
+                                         if unit in self._where and
+                                         (not setup.dc or unit in self._errors))
+                try:
+                    segment.start(free_running)
+                except AlStateError as exc:
+                    if segment._cycle_thread is None:
+                        raise                    # the segment never reached SAFE-OP
+                    # One slave below OP must not keep the others from running: the
+                    # supervisor keeps asking it, its drive reports the AL status code.
+                    log.warning('EtherCAT %s: %s', self.settings.interface, exc)
+            except BaseException as exc:
+                segment.close()
+                self.count(None, 'connect_failures')
+                if isinstance(exc, (TransportError, ProtocolException)):
+                    raise
+                if isinstance(exc, Exception):
+                    raise EthercatError(f'{self.description}: {exc}') from exc
+                raise
+            self._segment = segment
+            for unit, setup in self._setups.items():
+                if unit not in self._errors:
+                    try:
+                        slave = segment.slave(self._where[unit] - 1)
+                        slave.set_outputs(setup.safe_outputs)
+                        slave.guard_outputs(setup.safe_outputs, self._holds.get(unit, 0.0))
+                    except ValueError as exc:       # mapped other than the drive expects
+                        self._errors[unit] = str(exc)
+                        continue
+                    # SOEM runs this when it reconfigures the slave (after a power cycle,
+                    # at PRE-OP): what was written there at start is written again
+                    slave._soem.config_func = self._preop_hook(slave, setup)
+
+    @staticmethod
+    def _preop_hook(slave: EthercatSlave, setup: SlaveSetup) -> Callable[[int], None]:
+        """Return SOEM's PRE-OP -> SAFE-OP hook that writes the slave's set-up again.
+
+        Runs in the supervisor's reconfiguration (its state lock held, the process-data
+        thread does not use the mailbox), so it talks to pysoem directly; a failure is
+        logged and the slave then stays below SAFE-OP with its AL status code.
+        """
+        def write(index: int, subindex: int, data: bytes) -> None:
+            slave._soem.sdo_write(index, subindex, bytes(data))
+
+        def hook(position: int) -> None:
+            try:
+                if not setup.fixed_mapping:
+                    for index, entries in setup.pdos.mappings.items():
+                        write(index, 0, b'\x00')
+                        for sub, entry in enumerate(entries, 1):
+                            write(index, sub, struct.pack('<I', entry))
+                        write(index, 0, bytes([len(entries)]))
+                    for assign, indices in ((0x1C12, setup.pdos.rx), (0x1C13, setup.pdos.tx)):
+                        write(assign, 0, b'\x00')
+                        for sub, index in enumerate(indices, 1):
+                            write(assign, sub, struct.pack('<H', index))
+                        write(assign, 0, bytes([len(indices)]))
+                for index, subindex, data in setup.startup:
+                    write(index, subindex, data)
+                log.info('EtherCAT slave %d: PDO set-up written again', position + 1)
+            except Exception as exc:  # noqa: BLE001 - pysoem raises several kinds here
+                log.warning('EtherCAT slave %d: PDO set-up not written again: %r',
+                            position + 1, exc)
+        return hook
+
+    def _locate(self, segment: EthercatSegment) -> None:
+        """Find each attached slave: by position, or by its station alias (SII word 4)."""
+        self._where.clear()
+        aliases: list[int] | None = None
+        taken: dict[int, int] = {}
+        for unit, setup in sorted(self._setups.items()):
+            position = unit
+            if setup.alias:
+                if aliases is None:
+                    aliases = [_sii_alias(slave) for slave in segment.slaves]
+                matches = [n + 1 for n, alias in enumerate(aliases) if alias == setup.alias]
+                if len(matches) != 1:
+                    shown = ', '.join(f'{n + 1}: 0x{a:04X}' for n, a in enumerate(aliases))
+                    self._errors[unit] = (
+                        f'{"no" if not matches else "more than one"} EtherCAT slave with '
+                        f'station alias 0x{setup.alias:04X} on {self.settings.interface} '
+                        f'(aliases by position: {shown})')
+                    continue
+                position = matches[0]
+            if position in taken:
+                self._errors[unit] = (f'EtherCAT slave {position} is already driven by unit '
+                                      f'{taken[position]}')
+                continue
+            taken[position] = unit
+            self._where[unit] = position
+
+    def _prepare(self, segment: EthercatSegment, identities: list[SlaveIdentity],
+                 setup: SlaveSetup, position: int) -> None:
+        unit = setup.position
+        if position > len(identities):
+            found = ', '.join(f'{i.position + 1}: {i.name}' for i in identities)
+            self._errors[unit] = (f'no EtherCAT slave at position {position}: the segment '
+                                  f'on {self.settings.interface} has {len(identities)} '
+                                  f'({found})')
+            return
+        ident = identities[position - 1]
+        problem = identity_mismatch(ident, setup)
+        if problem:
+            self._errors[unit] = problem
+            return
+        try:
+            if not setup.fixed_mapping:
+                segment.configure_pdos(position - 1, setup.pdos)
+            else:
+                segment.configure_pdos(position - 1, PdoConfiguration(setup.pdos.rx,
+                                                                      setup.pdos.tx))
+            slave = segment.slave(position - 1)
+            for index, subindex, data in setup.startup:
+                slave.sdo_write(index, subindex, data)
+        except (TransportError, ProtocolException) as exc:
+            self._errors[unit] = f'slave {position} set-up at PRE-OP failed: {exc}'
+
+    def _check_sync(self, segment: EthercatSegment) -> None:
+        cycle = self.settings.cycle_time_s
+        for unit, setup in self._setups.items():
+            if unit in self._errors:
+                continue
+            slave = f'slave {self._where.get(unit, unit)}'
+            if self.settings.sync_mode is SyncMode.DC and not setup.dc:
+                self._errors[unit] = (f'{slave} has no DC sync (free run only): set '
+                                      'transport.sync_mode free_run')
+            elif self.settings.sync_mode is SyncMode.FREE_RUN and not setup.free_run:
+                self._errors[unit] = f'{slave} does not run free: set transport.sync_mode dc'
+            elif self.settings.sync_mode is SyncMode.DC and setup.sync_cycles_s and not any(
+                    abs(cycle - c) < 1e-9 for c in setup.sync_cycles_s):
+                allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
+                self._errors[unit] = (f'{slave} accepts cycle times {allowed}, not '
+                                      f'transport.cycle_time {cycle * 1e6:g} us')
+
+    def _on_lost(self, position: int) -> None:
+        # A lost slave gets its safe outputs, so that it never sees the last command
+        # again when it comes back before its drive has reconnected.
+        unit = next((u for u, p in self._where.items() if p == position + 1), None)
+        setup = self._setups.get(unit) if unit is not None else None
+        segment = self._segment
+        if setup is not None and segment is not None:
+            try:
+                segment.slave(position).set_outputs(setup.safe_outputs)
+            except ValueError:
+                pass
+
+    def _on_returned(self, position: int) -> None:
+        # A slave that was powered off comes back with its ESC defaults: set its SM
+        # watchdog again (its drive reads it back and reports it when it reconnects).
+        unit = next((u for u, p in self._where.items() if p == position + 1), None)
+        segment = self._segment
+        seconds = self._watchdogs.get(unit) if unit is not None else None
+        if segment is None or seconds is None:
+            return
+        try:
+            segment._set_watchdog(segment.slave(position), seconds)
+        except TransportError as exc:
+            log.warning('EtherCAT slave %d: SM watchdog not set again: %s', position + 1, exc)
+
+    def open_slave(self, unit: int) -> None:
+        """Open the segment if needed and check that slave ``unit`` is usable (in OP)."""
+        self.open()
+        with self._lock:
+            error = self._errors.get(unit)
+        if error:
+            raise EthercatError(error)
+        slave = self._slave(unit)
+        slave.read_state()
+        if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
+            raise AlStateError(slave.position, ALState.OP, slave.al_status,
+                               slave.al_status_code)
+        with self._lock:
+            self._open_units.add(unit)
+
+    def close_slave(self, unit: int) -> None:
+        """Hand slave ``unit`` its safe outputs; close the segment with the last slave."""
+        with self._lock:
+            self._open_units.discard(unit)
+            setup = self._setups.get(unit)
+            segment = self._segment
+            position = self._where.get(unit, unit)
+            if segment is not None and setup is not None and position <= len(segment.slaves):
+                try:
+                    segment.slave(position - 1).set_outputs(setup.safe_outputs)
+                except ValueError:
+                    pass
+            if not self._open_units:
+                self.close()
+
+    def close(self) -> None:
+        with self._lock:
+            segment, self._segment = self._segment, None
+            self._open_units.clear()
+        if segment is not None:
+            segment.close()
+
+    # -- per-slave data ---------------------------------------------------------------------
+
+    def _slave(self, unit: int, check: bool = True) -> Any:
+        segment = self._segment
+        if segment is None:
+            if not check:
+                return None
+            raise EthercatError(f'{self.description} is not open')
+        position = self._where.get(unit, unit)
+        if not 1 <= position <= len(segment.slaves):
+            if not check:
+                return None
+            raise EthercatError(f'no EtherCAT slave at position {position}')
+        return segment.slave(position - 1)
+
+    def write_outputs(self, unit: int, data: bytes) -> None:
+        """Send ``data`` as slave ``unit``'s RxPDO bytes from the next cycle on."""
+        slave = self._slave(unit)
+        try:
+            slave.set_outputs(data)
+        except ValueError as exc:
+            raise EthercatError(str(exc)) from exc
+
+    def wait_cycles(self, count: int) -> None:
+        """Return once ``count`` more process-data cycles ran (bounded: never raises)."""
+        segment = self._segment
+        if segment is None:
+            return
+        target = segment._cycles + count
+        deadline = time.monotonic() + count * self.settings.cycle_time_s * 5 + 0.05
+        while segment._cycles < target and time.monotonic() < deadline:
+            time.sleep(self.settings.cycle_time_s / 2)
+
+    def read_inputs(self, unit: int) -> bytes:
+        """Return slave ``unit``'s TxPDO bytes; TransportError if lost, below OP or stale."""
+        slave = self._slave(unit)
+        segment = self._segment
+        if segment is not None:
+            stats = segment.stats()
+            self.stats.transactions = stats.cycles
+            self.stats.bad_frames = stats.wkc_errors
+            self.stats.timeouts = stats.lost_frames
+        self.count_unit(unit, 'transactions')
+        age = time.monotonic() - slave.inputs_time
+        if slave.lost:
+            self.count_unit(unit, 'timeouts')
+            raise CommTimeout(f'EtherCAT slave {unit} lost (no answer on '
+                              f'{self.settings.interface})')
+        if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
+            self.count_unit(unit, 'exceptions')
+            raise EthercatError(f'EtherCAT slave {unit} left OP: it is '
+                                f'{al_state_name(slave.al_status)}, AL status code '
+                                f'0x{slave.al_status_code:04X} '
+                                f'({al_status_text(slave.al_status_code)})')
+        if age > self.stale_after:
+            self.count_unit(unit, 'timeouts')
+            raise CommTimeout(f'EtherCAT slave {unit}: no process data for {age:.2f} s '
+                              f'(link down or working-counter errors on '
+                              f'{self.settings.interface})')
+        return slave.inputs()
+
+    def count_unit(self, unit: int, counter: str) -> None:
+        unit_stats = self.stats_for(unit)
+        setattr(unit_stats, counter, getattr(unit_stats, counter) + 1)
+
+    def sdo_read(self, unit: int, index: int, subindex: int) -> bytes:
+        try:
+            return self._slave(unit).sdo_read(index, subindex)
+        except (TransportError, ProtocolException):
+            self.count_unit(unit, 'exceptions')
+            raise
+
+    def sdo_write(self, unit: int, index: int, subindex: int, data: bytes) -> None:
+        try:
+            self._slave(unit).sdo_write(index, subindex, data)
+        except (TransportError, ProtocolException):
+            self.count_unit(unit, 'exceptions')
+            raise
+
+    def take_emergencies(self, unit: int) -> list[Emergency]:
+        slave = self._slave(unit, check=False)
+        return slave.take_emergencies() if slave is not None else []
+
+    def identity(self, unit: int) -> SlaveIdentity | None:
+        slave = self._slave(unit, check=False)
+        return slave.identity if slave is not None else None
+
+
+def _sii_alias(slave: EthercatSlave) -> int:
+    """Return the configured station alias of a slave's SII (word 4; 0 = none)."""
+    try:
+        return int.from_bytes(bytes(slave._soem.eeprom_read(4))[:2], 'little')
+    except Exception:  # noqa: BLE001 - an unreadable SII has no alias to match
+        return 0
+
+
+def identity_mismatch(ident: SlaveIdentity, setup: SlaveSetup) -> str:
+    """Say why a slave is not the one a drive expects ('' when it is)."""
+    where = f'EtherCAT slave {ident.position + 1} ({ident.name!r})'
+    wrong = []
+    if setup.vendor_id is not None and ident.vendor_id != setup.vendor_id:
+        wrong.append(f'vendor 0x{ident.vendor_id:X}, not 0x{setup.vendor_id:X}')
+    if setup.product_code is not None and ident.product_code != setup.product_code:
+        wrong.append(f'product 0x{ident.product_code:X}, not 0x{setup.product_code:X}')
+    if setup.vendor_id is None and setup.product_code is None and setup.device_name and \
+            ident.name != setup.device_name:
+        wrong.append(f'device name {ident.name!r}, not {setup.device_name!r}')
+    if not wrong:
+        return ''
+    return f'{where} is not the drive of the profile: {"; ".join(wrong)}'

@@ -2,13 +2,15 @@
 
 Line numbers ("L...") refer to the original manual text in ``shared/seeds``
 (BONENG MH/MP: 000_c19f85fd6b43004e.txt; IMO HD2 cards: 004_2e8c796eaa0242ce.txt);
-where a manual is silent the value is marked as assumed. These tables will be
-superseded by the drive profiles (``vfd_ros2/profiles``) once they grow an
-EtherCAT section; the simulator only needs a ``DriveSpec``.
+where a manual is silent the value is marked as assumed. What the driver also
+relies on - identity, device name, PDO assignment, sync modes and cycles - is
+read from the profiles' ``ethercat`` sections (one source of truth); the rest
+(mailbox/SM addresses, ramps, vendor objects) is the simulator's own.
 """
 
 from __future__ import annotations
 
+from ...profiles import EthercatSpec, load_profile
 from .drive import MODE_CSV, MODE_PV, MODE_VL, DriveSpec, ObjectSpec, PdoSpec
 from .objects import Access, DataType
 
@@ -16,12 +18,27 @@ _u16, _u32, _i16, _i32 = DataType.UNSIGNED16, DataType.UNSIGNED32, DataType.INTE
     DataType.INTEGER32
 _rw, _ro = Access.RW, Access.RO
 
+
+def _ethercat(profile: str) -> EthercatSpec:
+    spec = load_profile(profile).ethercat
+    if spec is None:
+        raise ValueError(f'profile {profile} has no ethercat section')
+    return spec
+
+
+def _sync0(spec: EthercatSpec) -> tuple[int, ...] | None:
+    return tuple(c * 1000 for c in spec.sync_cycles_us) if spec.dc else None
+
+
+_MH = _ethercat('boneng_mh')
+_HD2 = _ethercat('imo_hd2')
+
 BONENG_MH_EC = DriveSpec(
-    name='AD_Drive',                                   # 0x1008, L3760
+    name=_MH.identity.device_name,                     # 0x1008, L3760
     # 0x1018:1/2 print 0 (L3763-3766): the real identity is only in the ESI file
-    # Boneng_AD_EC.xml, which the manual does not reproduce. Replace when known.
-    vendor_id=0x00000000,
-    product_code=0x00000000,
+    # Boneng_AD_EC.xml, which the manual does not reproduce (the profile leaves it open).
+    vendor_id=_MH.identity.vendor_id or 0,
+    product_code=_MH.identity.product_code or 0,
     revision=0x00000001,
     serial=0x00000001,
     device_type=0x00010192,                            # 0x1000, L3758
@@ -40,8 +57,8 @@ BONENG_MH_EC = DriveSpec(
     ),
     # 0x1C12:1 / 0x1C13:1 are RO and print 1700h / 1B00h (L3805-3810; EN 1800h), which
     # name no PDO of L3484-3490: read as the CoE_VL pair 0x1701 / 0x1B01.
-    rx_assign=(0x1701,),
-    tx_assign=(0x1B01,),
+    rx_assign=_MH.rx_pdos,
+    tx_assign=_MH.tx_pdos,
     assign_writable=False,
     modes=(MODE_VL,),                                   # CoE_VL = vl mode only (L3527-3531)
     default_mode=MODE_VL,
@@ -57,7 +74,8 @@ BONENG_MH_EC = DriveSpec(
     # mailbox and SM addresses are not in the manual (ESI only): assumed defaults
     mailbox=(0x1000, 128, 0x1080, 128),
     process_data_starts=(0x1100, 0x1180),
-    sync0_cycles_ns=None,                               # DC not described: free run only
+    sync0_cycles_ns=_sync0(_MH),                        # DC not described: free run only
+    free_run=_MH.free_run,
     objects=(
         ObjectSpec(0x4000, 0, 'R-PZD: entries', DataType.UNSIGNED8, _ro, 16),
         *(ObjectSpec(0x4000, n, f'R-PZD{n}', _u16, _rw, 0, True) for n in range(1, 17)),
@@ -69,9 +87,9 @@ BONENG_MH_EC = DriveSpec(
 )
 
 IMO_HD2_EC_TX508 = DriveSpec(
-    name='IMO-EtherCAT',                                # 1008h, L2366
-    vendor_id=0x000004D8,                               # 1018h:1, L2371
-    product_code=0x00009252,                            # 1018h:2, L2372
+    name=_HD2.identity.device_name,                     # 1008h, L2366
+    vendor_id=_HD2.identity.vendor_id or 0,             # 1018h:1, L2371
+    product_code=_HD2.identity.product_code or 0,       # 1018h:2, L2372
     revision=0x00000001,                                # 1018h:3
     serial=0x00000001,                                  # 1018h:4
     device_type=0x00000192,                             # 1000h, L2364
@@ -89,8 +107,8 @@ IMO_HD2_EC_TX508 = DriveSpec(
         *(PdoSpec(index, ((0x6041, 0, 16), (0x6064, 0, 32))) for index in (0x1A01, 0x1A02,
                                                                            0x1A03)),
     ),
-    rx_assign=(0x1600,),                                # 1C12h:1, L2438 (RW)
-    tx_assign=(0x1A00,),                                # 1C13h:1 (RW)
+    rx_assign=_HD2.rx_pdos,                             # 1C12h:1, L2438 (RW)
+    tx_assign=_HD2.tx_pdos,                             # 1C13h:1 (RW)
     assign_writable=True,
     # 6502h = 0x3A5: pp, pv, hm, csp, csv, cst (L2541); the simulation moves in pv/csv
     modes=(1, MODE_PV, 6, 8, MODE_CSV, 10),
@@ -104,7 +122,8 @@ IMO_HD2_EC_TX508 = DriveSpec(
     mailbox=(0x1000, 512, 0x1400, 512),                 # Table 4-4, L1589-1599
     process_data_starts=(0x1800, 0x1C00),
     # free run and DC SYNC0 (L1652-1654) at 250 us, 500 us, 1 ms, 2 ms (Table 4-1, L1517)
-    sync0_cycles_ns=(250_000, 500_000, 1_000_000, 2_000_000),
+    sync0_cycles_ns=_sync0(_HD2),
+    free_run=_HD2.free_run,
     # function-code access over 2000h-2003h (4.6, L1813-1824): P00.01 = 2, P00.02 = 3
     # (L1766), P00.10 = 50.00 Hz keypad frequency (L1822), P16.18 = 0.5 s (L2682)
     function_codes=((0x0001, 2), (0x0002, 3), (0x000A, 5000), (0x1012, 5)),

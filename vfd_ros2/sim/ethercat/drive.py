@@ -105,6 +105,7 @@ class DriveSpec:
     free_run: bool = True
     eeprom_read_bytes: int = 8
     function_codes: tuple[tuple[int, int], ...] = ()  # vendor function-code access 0x2000
+    alias: int = 0                                    # configured station alias (SII word 4)
     objects: tuple[ObjectSpec, ...] = ()              # vendor objects and overrides
     sources: tuple[str, ...] = field(default=(), compare=False)
 
@@ -197,6 +198,11 @@ class Cia402VelocityDrive:
 
     def __init__(self, spec: DriveSpec) -> None:
         self.spec = spec
+        self.power_on()
+
+    def power_on(self) -> None:
+        """Start as after power-up: defaults everywhere (PDO mappings written in PRE-OP lost)."""
+        spec = self.spec
         self.od = ObjectDictionary()
         for item in standard_objects(spec):
             self.od.add(_entry(item))
@@ -309,7 +315,8 @@ class Cia402VelocityDrive:
         return 0
 
     def _function_code_write(self, entry: Entry, value: Any) -> int:
-        address, data = int(value) >> 16, int(value) & 0xFFFF
+        # the address's MSB asks for a RAM-only write (IMO manual L2098): same value here
+        address, data = (int(value) >> 16) & 0x7FFF, int(value) & 0xFFFF
         if address in self._function_codes:
             self._function_codes[address] = data
             result = 0x0001 << 16 | data
@@ -561,6 +568,7 @@ def sii_data(spec: DriveSpec) -> SiiData:
                              sm if pdo.index in assigned else 0xFF) for pdo in pdos)
 
     return SiiData(
+        alias=spec.alias,
         vendor_id=spec.vendor_id, product_code=spec.product_code, revision=spec.revision,
         serial=spec.serial, rx_mailbox=(rx_offset, rx_size), tx_mailbox=(tx_offset, tx_size),
         strings=(spec.name,),

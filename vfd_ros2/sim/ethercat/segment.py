@@ -19,13 +19,16 @@ reply - never competes with it for the GIL. Its methods send control commands.
 
 from __future__ import annotations
 
+import importlib.util
 import multiprocessing
 import multiprocessing.connection
 import select
 import socket
 import statistics
+import sys
 import time
 import traceback
+import types
 from collections import deque
 from typing import Any, Sequence
 
@@ -80,8 +83,16 @@ class Segment:
         self._update_links()
 
     def power_cycle(self, position: int) -> None:
-        """Switch slave ``position`` off and on: all its registers reset (INIT, address 0)."""
-        self.escs[position].power_on(time.monotonic_ns(), time.monotonic())
+        """Switch slave ``position`` off and on: all its registers reset (INIT, address 0).
+
+        The device behind it restarts too (its application's ``power_on``, if any): what
+        the master wrote to it (PDO mappings, modes) is gone, as on a real drive.
+        """
+        esc = self.escs[position]
+        power_on = getattr(esc.app, 'power_on', None)
+        if power_on is not None:
+            power_on()
+        esc.power_on(time.monotonic_ns(), time.monotonic())
 
     def process(self, frame: bytes, now_ns: int | None = None) -> bytes | None:
         """Return the frame as it comes back to the master, or None if none comes back."""
@@ -255,7 +266,17 @@ class SimulatedSegment:
         self._process = context.Process(target=_serve_in_process,
                                         args=(link, self.specs, child), daemon=True,
                                         name='ethercat-segment')
-        self._process.start()
+        # A spawned child re-runs the parent's main module unless told otherwise; a
+        # script without a __main__ guard (an installed console script, a benchmark
+        # runner) would run again there. The child needs only this module.
+        main_module = sys.modules['__main__']
+        stand_in = types.ModuleType('__main__')
+        stand_in.__spec__ = importlib.util.find_spec(__name__)
+        sys.modules['__main__'] = stand_in
+        try:
+            self._process.start()
+        finally:
+            sys.modules['__main__'] = main_module
         child.close()
         if not self._conn.poll(start_timeout):
             self.close()
