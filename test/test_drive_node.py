@@ -68,7 +68,7 @@ def test_invert_direction_and_clamp(make_harness):
 def test_startup_never_moves_and_zeroes_setpoint_first(make_harness):
     h = make_harness(node_parameters={'auto_enable': True})
     first_run = None
-    frames = [frame for _, frame in h.line.received]
+    frames = [frame for _, frame in list(h.line.received)]
     for index, frame in enumerate(frames):
         if frame == write_frame(0xE720, 1):
             first_run = index
@@ -76,8 +76,8 @@ def test_startup_never_moves_and_zeroes_setpoint_first(make_harness):
     assert first_run is None                                       # no command: no run
     assert frames.index(write_frame(0xE721, 0)) < frames.index(write_frame(0xE720, 4))
     h.stream(1.0)
-    wait_for(lambda: write_frame(0xE720, 1) in [f for _, f in h.line.received], 5.0, 'run')
-    frames = [frame for _, frame in h.line.received]
+    wait_for(lambda: write_frame(0xE720, 1) in [f for _, f in list(h.line.received)], 5.0, 'run')
+    frames = [frame for _, frame in list(h.line.received)]
     run = frames.index(write_frame(0xE720, 1))
     # Rising edge: the command register is cleared right before the run command.
     assert frames[run - 1] == write_frame(0xE720, 0)

@@ -157,6 +157,6 @@ def test_auxiliary_setpoint_topics(make_harness, family):
         publisher.publish(Float64(data=value))
         wait_for(lambda: h.sim.value(code) == pytest.approx(value), 3.0, f'{topic} written')
         # The invalid values were dropped: the only writes on the wire carry the valid one.
-        written = {int.from_bytes(frame[4:6], 'big') for _, frame in h.line.received
+        written = {int.from_bytes(frame[4:6], 'big') for _, frame in list(h.line.received)
                    if frame[1] == 6 and int.from_bytes(frame[2:4], 'big') == parameter.address}
         assert written == {round(value / parameter.scale)}   # the manual's scaling

@@ -13,6 +13,7 @@ import time
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.qos import QoSProfile
 from std_srvs.srv import Trigger
 
 from harness import wait_for
@@ -321,7 +322,11 @@ def test_enable_succeeds_on_an_idle_drive_without_commands(make_harness, profile
 
 def test_a_burst_of_service_calls_is_answered_every_time(make_harness):
     h = make_harness()
-    clients = [h.tester.create_client(Trigger, 'drive/enable') for _ in range(16)]
+    # Each client has 12-13 calls outstanding, answered together (duplicates share one
+    # action): its response queue must hold them all, or DDS drops the oldest (the
+    # default KEEP_LAST 10 lost up to 6 answers on a loaded machine).
+    clients = [h.tester.create_client(Trigger, 'drive/enable',
+                                      qos_profile=QoSProfile(depth=256)) for _ in range(16)]
     assert all(c.wait_for_service(timeout_sec=5.0) for c in clients)
     futures = [clients[i % 16].call_async(Trigger.Request()) for i in range(200)]
     wait_for(lambda: all(f.done() for f in futures), 30.0, '200 answers')

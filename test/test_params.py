@@ -546,7 +546,7 @@ def test_dump_diff_restore_through_a_running_drive_node(make_harness, tmp_path):
     # RAM, as asked: the node wrote the function code at its RAM-only address (| 0x8000).
     address = h.profile.parameter(tuned).address | 0x8000
     assert any(frame[7] == 6 and int.from_bytes(frame[8:10], 'big') == address
-               for _, frame in h.line.received)
+               for _, frame in list(h.line.received))
     assert '~/stop: stopped (call ~/enable to resume)' in out and 'held stopped' in out
     h.wait_status(lambda s: not s.running and s.online, 3.0, 'not running')
     code, out, _ = params(['diff', backup_file, '--node', node])
