@@ -131,6 +131,68 @@ class ParameterValue:
         return self.parameter.option_text(self.raw)
 
 
+class DriveOnLink:
+    """What every drive class says the same way: who it is on its link, and its counters."""
+
+    profile: Profile
+    transport: Transport
+    unit_id: int
+
+    @property
+    def hardware_id(self) -> str:
+        return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
+
+    @property
+    def stats(self) -> TransportStats:
+        return self.transport.stats_for(self.unit_id)
+
+
+class ObjectDictionaryParameters:
+    """The parameter verbs of a drive whose parameters are objects behind SDO.
+
+    CANopen and EtherCAT (CoE) share validation, write and read-back; a bus says
+    how a parameter is reached (``_reachable``: ParameterError if it is not),
+    read and written (``_read_raw``, ``_write_raw``), and what a write means for
+    persistence (``_write_note``).
+    """
+
+    profile: Profile
+
+    def _reachable(self, parameter: Parameter) -> Parameter:
+        raise NotImplementedError
+
+    def _read_raw(self, parameter: Parameter) -> int:
+        raise NotImplementedError
+
+    def _write_raw(self, parameter: Parameter, raw: int, persistent: bool) -> None:
+        raise NotImplementedError
+
+    def _write_note(self, parameter: Parameter, persistent: bool) -> str:
+        return 'SDO write; whether it survives power-off is up to the drive' \
+            if persistent else ''
+
+    def get_parameter(self, key: str) -> ParameterValue:
+        parameter = self._reachable(self.profile.parameter(key))
+        raw = self._read_raw(parameter)
+        return ParameterValue(parameter, raw, parameter.from_raw(raw))
+
+    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
+        """Validate a write without touching the drive; ParameterError says why not."""
+        parameter = self._reachable(self.profile.parameter(key))
+        return parameter, check_write(self.profile, parameter, value, running)
+
+    def set_parameter(self, key: str, value: float, persistent: bool,
+                      running: bool) -> tuple[ParameterValue, str]:
+        """Validate (access, range, resolution, type), write over SDO, read back."""
+        parameter, raw = self.check_write(key, value, running)
+        self._write_raw(parameter, raw, persistent)
+        readback = self._read_raw(parameter)
+        if readback != raw:
+            raise ParameterError(f'{parameter.code}: wrote {raw} but the drive holds {readback}')
+        return (ParameterValue(parameter, readback, parameter.from_raw(readback)),
+                self._write_note(parameter, persistent))
+
+
 class Drive(Protocol):
     """What the controller needs from a drive, whatever the bus.
 

@@ -41,9 +41,15 @@ from ..profiles import (
 )
 from ..protocol.cia402 import State
 from ..protocol.scaling import VelocityScaling
-from ..transports.base import TransportParameter, TransportStats
+from ..transports.base import TransportParameter
 from ..transports.canopen import CanopenTransport, ObjectEntry
-from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading, check_write
+from .base import (
+    HOST_LOSS_JITTER,
+    DriveOnLink,
+    HostLossProtection,
+    ObjectDictionaryParameters,
+    Reading,
+)
 from .cia402 import Cia402Control
 
 log = logging.getLogger(__name__)
@@ -86,7 +92,7 @@ def decode_fault(faulted: bool, code: int, emcy: FaultInfo, faults: FaultSpec,
     return describe_fault(faults, GENERIC_ERROR) if cia_codes else cia_fault(GENERIC_ERROR)
 
 
-class CanopenDrive:
+class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
     """One drive on a CANopen transport, driven through its profile."""
 
     settings: ClassVar[tuple[TransportParameter, ...]] = (
@@ -166,14 +172,6 @@ class CanopenDrive:
         return layout
 
     # --- link -------------------------------------------------------------------------
-
-    @property
-    def hardware_id(self) -> str:
-        return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
-
-    @property
-    def stats(self) -> TransportStats:
-        return self.transport.stats_for(self.unit_id)
 
     def open(self) -> None:
         self.transport.open_node(self.unit_id)
@@ -334,7 +332,7 @@ class CanopenDrive:
                 continue
             try:
                 raw = parameter.to_raw(item.value)
-                if self._read_parameter(parameter) != raw:
+                if self._read_raw(parameter) != raw:
                     self.transport.write_object(self.unit_id, parameter.index,
                                                 parameter.subindex, parameter.type, raw)
             except (ParameterError, ProtocolException) as exc:   # e.g. an SDO abort
@@ -488,39 +486,19 @@ class CanopenDrive:
 
     # --- parameters ---------------------------------------------------------------------
 
-    def _object_of(self, parameter: Parameter) -> Parameter:
+    def _reachable(self, parameter: Parameter) -> Parameter:
         if parameter.index is None:
             raise ParameterError(f'{parameter.code} ({parameter.description}) has no CANopen '
                                  'object: not reachable over CANopen')
         return parameter
 
-    def _read_parameter(self, parameter: Parameter) -> int:
+    def _read_raw(self, parameter: Parameter) -> int:
         return self.transport.read_object(self.unit_id, parameter.index, parameter.subindex,
                                           parameter.type)
 
-    def get_parameter(self, key: str) -> ParameterValue:
-        parameter = self._object_of(self.profile.parameter(key))
-        raw = self._read_parameter(parameter)
-        return ParameterValue(parameter, raw, parameter.from_raw(raw))
-
-    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
-        """Validate a write without touching the drive; ParameterError says why not."""
-        parameter = self._object_of(self.profile.parameter(key))
-        return parameter, check_write(self.profile, parameter, value, running)
-
-    def set_parameter(self, key: str, value: float, persistent: bool,
-                      running: bool) -> tuple[ParameterValue, str]:
-        """Validate (access, range, resolution, type), SDO download, read back."""
-        parameter, raw = self.check_write(key, value, running)
+    def _write_raw(self, parameter: Parameter, raw: int, persistent: bool) -> None:
         self.transport.write_object(self.unit_id, parameter.index, parameter.subindex,
                                     parameter.type, raw)
-        readback = self._read_parameter(parameter)
-        if readback != raw:
-            raise ParameterError(f'{parameter.code}: wrote {raw} but the drive holds {readback}')
-        note = ('SDO write; whether it survives power-off is up to the drive'
-                if persistent else '')
-        return ParameterValue(parameter, readback, parameter.from_raw(readback)), note
-
 
 def obj_code(obj: CanObject) -> str:
     return obj.code or str(obj)

@@ -37,14 +37,20 @@ from ..profiles import (
 )
 from ..protocol.cia402 import Command, State
 from ..protocol.scaling import VelocityScaling
-from ..transports.base import TransportParameter, TransportStats
+from ..transports.base import TransportParameter
 from ..transports.ethercat import (
     Emergency,
     EthercatTransport,
     PdoConfiguration,
     SlaveSetup,
 )
-from .base import HOST_LOSS_JITTER, HostLossProtection, ParameterValue, Reading, check_write
+from .base import (
+    HOST_LOSS_JITTER,
+    DriveOnLink,
+    HostLossProtection,
+    ObjectDictionaryParameters,
+    Reading,
+)
 from .canopen import GENERIC_ERROR, cia_fault
 from .cia402 import Cia402Control
 
@@ -69,7 +75,7 @@ def unpack(value_type: ValueType, data: bytes) -> int:
     return struct.unpack(_FORMATS[value_type], data[:size])[0]
 
 
-class EthercatDrive:
+class EthercatDrive(DriveOnLink, ObjectDictionaryParameters):
     """One CiA 402 drive on an EtherCAT segment, driven through its profile."""
 
     settings: ClassVar[tuple[TransportParameter, ...]] = (
@@ -152,14 +158,6 @@ class EthercatDrive:
         self._last_emcy: FaultInfo = NO_FAULT
 
     # --- link -------------------------------------------------------------------------
-
-    @property
-    def hardware_id(self) -> str:
-        return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
-
-    @property
-    def stats(self) -> TransportStats:
-        return self.transport.stats_for(self.unit_id)
 
     @property
     def state(self) -> State | None:
@@ -439,26 +437,7 @@ class EthercatDrive:
             ValueType.UINT32, (address << 16) | (raw & 0xFFFF)))
         self._window_answer(parameter, window.write_response, 'write of')
 
-    def get_parameter(self, key: str) -> ParameterValue:
-        parameter = self._reachable(self.profile.parameter(key))
-        raw = self._read_raw(parameter)
-        return ParameterValue(parameter, raw, parameter.from_raw(raw))
-
-    def check_write(self, key: str, value: float, running: bool) -> tuple[Parameter, int]:
-        """Validate a write without touching the drive; ParameterError says why not."""
-        parameter = self._reachable(self.profile.parameter(key))
-        return parameter, check_write(self.profile, parameter, value, running)
-
-    def set_parameter(self, key: str, value: float, persistent: bool,
-                      running: bool) -> tuple[ParameterValue, str]:
-        """Validate, write over SDO (object or function-code window), read back."""
-        parameter, raw = self.check_write(key, value, running)
-        self._write_raw(parameter, raw, persistent)
-        readback = self._read_raw(parameter)
-        if readback != raw:
-            raise ParameterError(f'{parameter.code}: wrote {raw} but the drive holds {readback}')
+    def _write_note(self, parameter: Parameter, persistent: bool) -> str:
         if parameter.index is not None:
-            note = 'SDO write; whether it survives power-off is up to the drive'
-        else:
-            note = 'EEPROM' if persistent else 'RAM'
-        return ParameterValue(parameter, readback, parameter.from_raw(readback)), note
+            return super()._write_note(parameter, True)
+        return 'EEPROM' if persistent else 'RAM'

@@ -22,10 +22,11 @@ from ..profiles import (
 from ..protocol.registers import ReadBlock, decode_words, encode_words, plan_reads
 from ..protocol.rtu_timing import reply_size
 from ..protocol.scaling import VelocityScaling
-from ..transports.base import RegisterTransport, TransportParameter, TransportStats
+from ..transports.base import RegisterTransport, TransportParameter
 from .base import (
     ACTION_TRANSACTIONS,
     HOST_LOSS_JITTER,
+    DriveOnLink,
     HostLossProtection,
     ParameterValue,
     Reading,
@@ -36,7 +37,7 @@ from .base import (
 T = TypeVar('T')
 
 
-class ModbusDrive:
+class ModbusDrive(DriveOnLink):
     """One drive on a register transport, driven through its profile."""
 
     settings: ClassVar[tuple[TransportParameter, ...]] = ()
@@ -108,14 +109,6 @@ class ModbusDrive:
             for block in self.blocks}
 
     # --- link ---------------------------------------------------------------
-
-    @property
-    def hardware_id(self) -> str:
-        return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
-
-    @property
-    def stats(self) -> TransportStats:
-        return self.transport.stats_for(self.unit_id)
 
     def open(self) -> None:
         self.transport.open()
