@@ -224,7 +224,7 @@ def render_markdown(results: dict[str, Any], table: str) -> str:
                       for drives, top in spy)
     return f"""## Performance
 
-Measured by `{command}` (`bench/run.py`, about 7 minutes on 2 cores; `scripts/bench
+Measured by `{command}` (`bench/run.py`, about 15 minutes on 2 cores; `scripts/bench
 --quick` for a smoke run; results in `bench/results/latest.json`). Everything runs on one
 machine: the simulated drives in their own process behind a pseudo-terminal whose wire
 time is emulated at the baud rate (`vfd_ros2/sim/rtu_line.py`: a request is complete only
@@ -257,9 +257,9 @@ BOUNDS = """### Targets and what bounds them
   addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and above 19200
   baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM drives on one
   115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive per line
-  or slower status polling (`every:` in the profile). At 115200 with 4 drives the margin
-  is thin and moves between runs on this shared 2-core machine (87.8-91.6 % in the full
-  runs of this change): the turnaround above is the part that varies.
+  or slower status polling (`every:` in the profile). At 115200 the margin is thin and
+  moves between runs on this shared 2-core machine (one drive: 82-94 % in back-to-back
+  runs of the same code): the turnaround above is the part that varies.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -282,28 +282,32 @@ BOUNDS = """### Targets and what bounds them
   need a drive that accepts a new request before the reply to the previous one (not
   Modbus RTU), or shorter status reads (fewer registers per read lowers the in-flight
   wait: profile `every:` / `max_read_registers`). TCP has no such serialisation.
-- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s).** The table puts the
-  previous design (a `drive_node` per drive, each with its own loop thread) next to what
-  ships: one `bus_node` thread per CAN channel that writes every drive's RPDOs in one burst
-  and then one SYNC (`transport.sync_producer`) where the drives take synchronous PDOs
-  (`cia402_velocity`: transmission type 1; the Kinco stays event-driven), with and
-  without `realtime_priority` (SCHED_FIFO for that thread). What bounds 8 drives at
-  500 Hz here: python-can's virtual bus is in-process, so the driver and the eight
-  simulated drives share one interpreter and its GIL on 2 cores; and on a real 1 Mbit/s
-  bus, 8 drives x 3 frames x 500 Hz plus SYNC exceed the bus's capacity (`load % 1M`).
-- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one).**
-  The executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
-  previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
-  rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
-  bus_node). The wheel's events executor does not await coroutine callbacks
-  (ros2/rclpy#1473), so the drive services are answered from the control thread
-  (`ros/deferred_service.py`), and a bus publishes every drive's status and diagnostics
-  from one timer per rate. What is left is the control thread: ~100 µs of Python per
-  Modbus transaction on a pty (pymodbus' PDU and framer, the reply checks, the
-  syscalls) x ~5.4 transactions per drive-cycle x 50 Hz, ~2.5-3 % of a core per drive
-  before any ROS work; the 4-drive figure lands close to the target, the single drive
-  above its. What would move it further: fewer transactions per cycle (the profile's
-  `every:` for slow values), not a faster executor.
+- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — not met in this bench.**
+  The table puts the previous design (a `drive_node` per drive, each with its own loop
+  thread) next to what ships: one `bus_node` thread per CAN channel that writes every
+  drive's RPDOs in one burst and then one SYNC (`transport.sync_producer`) where the
+  drives take synchronous PDOs (`cia402_velocity`: transmission type 1; the Kinco stays
+  event-driven), with and without `realtime_priority` (SCHED_FIFO for that thread). The
+  bus thread misses about a sixth as many cycles as the previous design, not none: in
+  this bench python-can's virtual bus is in-process, so the bus thread shares one
+  interpreter and its GIL with the four simulated drives, the executor and the command
+  publisher, and a thread that waits for the GIL is not helped by SCHED_FIFO (the rt 50
+  row is no better). On a robot the drives are on the wire, not in the process. 8 drives
+  at 500 Hz: the process cannot keep up here, and on a real 1 Mbit/s bus 8 drives x 3
+  frames x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
+- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
+  met; about a third less than before.** The executables spin rclpy's `EventsExecutor`
+  (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured side
+  by side): the single-threaded one rebuilt its wait set from every entity on every
+  wake-up (py-spy: ~80 % of a 32-drive bus_node). The wheel's events executor does not
+  await coroutine callbacks (ros2/rclpy#1473), so the drive services are answered from
+  the control thread (`ros/deferred_service.py`), and a bus publishes every drive's
+  status and diagnostics from one timer per rate. The executor thread is now ~4 % of a
+  core for 4 drives; what is left is the control thread: ~100 µs of Python per Modbus
+  transaction on a pty (`software floor`: pymodbus' PDU and framer, the reply checks, the
+  syscalls) x ~5.4 transactions per drive-cycle x 50 Hz, ~3 % of a core per drive before
+  any ROS work. What would move it further: fewer transactions per cycle (the profile's
+  `every:` for slow values, a drive that allows longer reads), not a faster executor.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core).** Before this change one bus_node was CPU-bound at 101 % with 0.4 cycles/s per
   drive. Four things held it back, each fixed: the executor's wait set (above); the
@@ -312,18 +316,21 @@ BOUNDS = """### Targets and what bounds them
   before every status read that scanned every drive (now nothing runs unless a command
   waits or a watchdog may be due); and in the bench itself, the simulated line advanced
   all 32 drive models after every frame, which held replies back by milliseconds.
-  Start-up to all online is bounded by design: a bus connects one offline drive per
-  cycle, so every online drive stays addressed well within its comm-loss timeout
-  (issue 9), and a cycle of n online drives takes n x ~30 ms at 115200.
+  What is left to 90 %: the per-transaction turnaround (above) on a machine that also
+  runs the 32 simulated drives. Start-up to all online is bounded by design: a bus
+  connects one offline drive per cycle, so every online drive stays addressed well within
+  its comm-loss timeout (issue 9), and a cycle of n online drives takes n x ~30 ms at
+  115200.
 - **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not met on this machine; 1 ms
-  reported as measured.** The plan runs 10 s per case (not 60 s) to keep the bench near 10
+  reported as measured.** The plan runs 10 s per case (not 60 s) to keep the bench near 15
   minutes. The process-data thread (`EthercatSegment._cycle`) is a Python loop that sleeps
   to an absolute schedule and skips whole slots when it wakes more than a period late
   (counted as missed). Its own cost is small (~4 % of a core at 2 ms, ~6 % at 1 ms); what
   bounds it is wake-up latency on a 2-core machine shared with the simulated segment (a
-  Python process answering every frame, 15-30 % of a core) and other work: p50 jitter is
-  ~0.1 ms, p99 1-3 ms, max 9-26 ms. Lost frames are frames that did not come back within
-  the receive timeout (0.8 × the cycle) because the simulator was descheduled. What would
+  Python process answering every frame, 15-35 % of a core) and other work: p50 jitter is
+  ~0.1 ms, p99 0.4-1.4 ms, max 4-10 ms in this run. Lost frames are frames that did not
+  come back within the receive timeout (0.8 × the cycle) because the simulator was
+  descheduled. What would
   move it: `transport.realtime_priority` style SCHED_FIFO for the process-data thread
   (`SegmentSettings.realtime_priority`, `bench/ethercat_cycle.py --rt`), an isolated core,
   and a real ESC (hardware answers in microseconds, not a Python process).
