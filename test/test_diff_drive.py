@@ -232,6 +232,8 @@ class FakeWheel:
                                    lambda msg: self.commands.append(msg.data), 50)
         self.status_pub = tester.create_publisher(DriveStatus, f'{prefix}/drive/status', 10)
         self.position: float | None = None     # rad; None: no JointState published
+        self.joint_every = 1                    # publish the JointState every n-th status
+        self._statuses = 0
         self.joint_pub = tester.create_publisher(JointState, f'{prefix}/joint_states', 10)
 
     def publish_status(self, stamp: Any) -> None:
@@ -239,7 +241,8 @@ class FakeWheel:
             status = DriveStatus(online=self.online, measured_velocity=self.measured)
             status.header.stamp = stamp
             self.status_pub.publish(status)
-            if self.position is not None:
+            self._statuses += 1
+            if self.position is not None and self._statuses % self.joint_every == 0:
                 joint = JointState(name=['wheel'], position=[self.position],
                                    velocity=[self.measured])
                 joint.header.stamp = stamp
@@ -283,6 +286,7 @@ class DiffDriveRig:
         self.executor.add_node(self.tester)
         self._running = threading.Event()
         self._running.set()
+        self.feeding = threading.Lock()     # held while one tick's messages go out
         self.twist: tuple[float, float] | None = None
         self._threads = [threading.Thread(target=self._spin, daemon=True),
                          threading.Thread(target=self._feed, daemon=True)]
@@ -298,12 +302,18 @@ class DiffDriveRig:
         tick = 0
         while self._running.is_set() and self.context.ok():
             stamp = self.tester.get_clock().now().to_msg()
-            self.left.publish_status(stamp)
-            self.right.publish_status(stamp)
+            with self.feeding:
+                self.left.publish_status(stamp)
+                self.right.publish_status(stamp)
             if self.twist is not None and tick % 2 == 0:
                 self.send(*self.twist)
             tick += 1
             time.sleep(0.02)
+
+    def set_positions(self, left: float | None, right: float | None) -> None:
+        """Both wheels' positions at once: never one wheel's new and the other's old."""
+        with self.feeding:
+            self.left.position, self.right.position = left, right
 
     def send(self, linear: float, angular: float) -> None:
         twist = Twist()
@@ -557,36 +567,50 @@ def test_stale_stamped_cmd_vel_keeps_a_simulated_motor_stopped(ros_context, tmp_
 
 def test_odometry_follows_wheel_positions_when_the_drives_report_them(make_rig):
     rig = make_rig()
-    rig.left.position = rig.right.position = 0.0
+    rig.set_positions(0.0, 0.0)
     wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'position feedback')
     # The positions advance (10 rad = 1 m) while the measured speeds say 0: the pose
     # follows the positions, the twist the speeds.
-    rig.left.position = rig.right.position = 10.0
+    rig.set_positions(10.0, 10.0)
     wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.position.x == pytest.approx(1.0),
              3.0, 'pose from positions')
     assert rig.odom[-1].twist.twist.linear.x == 0.0
     # Left turned -2.5 rad and right +2.5 rad: 1 rad counter-clockwise on the spot.
-    rig.left.position, rig.right.position = 7.5, 12.5
+    rig.set_positions(7.5, 12.5)
     wait_for(lambda: rig.odom[-1].pose.pose.orientation.z == pytest.approx(math.sin(0.5)),
              3.0, 'yaw 1 rad from positions')
     assert rig.odom[-1].pose.pose.position.x == pytest.approx(1.0)
     # Without positions (the JointState stops) the speeds are integrated again; the
     # positions' jump while they were missing is not counted twice.
-    rig.left.position = rig.right.position = None
+    rig.set_positions(None, None)
     wait_for(lambda: rig.node.odometry_source == 'velocity', 3.0, 'speeds integrated')
     x = rig.odom[-1].pose.pose.position.x
-    rig.left.position, rig.right.position = 100.0, 100.0
+    rig.set_positions(100.0, 100.0)
     wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'positions again')
     count = len(rig.odom)
     wait_for(lambda: len(rig.odom) > count + 10, 2.0, 'more odom')
     assert rig.odom[-1].pose.pose.position.x == pytest.approx(x, abs=1e-9)
 
 
+def test_a_wheel_reporting_late_does_not_bend_the_path(make_rig):
+    """Positions come on two topics: one wheel's new position alone is not a turn."""
+    rig = make_rig()
+    rig.right.joint_every = 10                  # the right wheel reports 5 times a second
+    rig.set_positions(0.0, 0.0)
+    wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'position feedback')
+    rig.set_positions(10.0, 10.0)               # 1 m straight ahead
+    wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.position.x == pytest.approx(1.0),
+             3.0, 'pose from positions')
+    pose = rig.odom[-1].pose.pose
+    assert pose.position.y == pytest.approx(0.0, abs=1e-9)
+    assert pose.orientation.z == pytest.approx(0.0, abs=1e-9)
+
+
 def test_position_feedback_false_integrates_speeds(make_rig):
     rig = make_rig(position_feedback=False)
-    rig.left.position = rig.right.position = 0.0
+    rig.set_positions(0.0, 0.0)
     wait_for(lambda: rig.odom and rig.odom[-1].twist.covariance[0] < 1.0, 3.0, 'valid odom')
-    rig.left.position = rig.right.position = 10.0
+    rig.set_positions(10.0, 10.0)
     count = len(rig.odom)
     wait_for(lambda: len(rig.odom) > count + 10, 2.0, 'more odom')
     assert rig.odom[-1].pose.pose.position.x == 0.0 and rig.node.odometry_source == 'velocity'

@@ -146,11 +146,13 @@ class WheelPosition:
         self.sign = sign
         self.position_rad = math.nan
         self.received: Time | None = None
+        self.updates = 0        # positions received so far
 
     def update(self, msg: JointState, now: Time) -> None:
         if msg.position:
             self.position_rad = self.sign * float(msg.position[0])
             self.received = now
+            self.updates += 1
 
     def usable(self, now: Time, timeout_s: float) -> bool:
         return self.received is not None and math.isfinite(self.position_rad) and \
@@ -187,7 +189,9 @@ class DiffDriveNode(Node):
         self.position_feedback = bool(values['position_feedback'])
         self.left_position = WheelPosition(self.left.sign)
         self.right_position = WheelPosition(self.right.sign)
-        self._baseline: tuple[float, float] | None = None   # positions at the last update
+        # positions at the last update, and how many each wheel had received by then
+        self._baseline: tuple[float, float] | None = None
+        self._baseline_updates = (0, 0)
         #: what the pose followed in the last cycle: 'position', 'velocity' or 'hold'
         self.odometry_source = 'hold'
         self.stale_commands = 0
@@ -349,19 +353,26 @@ class DiffDriveNode(Node):
             self.get_logger().warning(f'odometry holds its pose: {problem}',
                                       throttle_duration_sec=2.0)
         elif positions is not None:
-            if self._baseline is not None:
+            updates = (self.left_position.updates, self.right_position.updates)
+            # The wheels report on their own topics: advance only once both have a
+            # position newer than the last step (one wheel's alone would be a turn).
+            both_new = all(count > seen for count, seen in zip(updates, self._baseline_updates))
+            if self._baseline is not None and both_new:
                 self.odometry.advance(positions[0] - self._baseline[0],
                                       positions[1] - self._baseline[1],
                                       self.left.velocity_rad_s, self.right.velocity_rad_s)
             else:
                 self.odometry.update(self.left.velocity_rad_s, self.right.velocity_rad_s, 0.0)
+            if self._baseline is None or both_new:
+                self._baseline, self._baseline_updates = positions, updates
             self.odometry_source = 'position'
         else:
             self.odometry.update(self.left.velocity_rad_s, self.right.velocity_rad_s, dt)
             self.odometry_source = 'velocity'
-        # Position increments count from the last cycle that used them: after a gap
-        # (held, or integrated speeds) the next one starts from the positions then.
-        self._baseline = positions if not problem else None
+        if positions is None or problem:
+            # Position increments count from the last cycle that used them: after a gap
+            # (held, or integrated speeds) the next one starts from the positions then.
+            self._baseline = None
         self._publish_odometry(now)
 
     def _positions(self, now: Time) -> tuple[float, float] | None:
