@@ -197,15 +197,14 @@ class Bus:
         chosen = due[self._connect_turn % len(due)] if due else None
         self._connect_turn += 1
         self._command_waiting = False           # every command is written now
-        self._watchdog_check_at = self.preempt_at() or math.inf
+        self._plan_watchdog_check()
         for controller in controllers:          # commands first, for every drive ...
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
             controller.command_phase(connect_allowed=controller is chosen)
         for transport in self.transports:       # (CANopen: one SYNC applies them all)
             transport.end_command_burst()
-        # Drives may have started running: their watchdogs count from here.
-        self._watchdog_check_at = self.preempt_at() or math.inf
+        self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
@@ -221,6 +220,10 @@ class Bus:
             return
         self._command_waiting = False
         self.preempt()
+        self._plan_watchdog_check()
+
+    def _plan_watchdog_check(self) -> None:
+        """Note the earliest moment a running drive's watchdog can expire (or never)."""
         self._watchdog_check_at = self.preempt_at() or math.inf
 
     def preempt(self) -> None:

@@ -40,7 +40,7 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     # with callbacks. That wait went into every transaction of a 32-drive bus.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
     rclpy.init(args=args)
-    node = None
+    node = executor = None
     try:
         node = make_node()
         executor = make_executor()
@@ -53,6 +53,10 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
         print(f'{name}: {exc}')
         return 1
     finally:
+        # The executor lets go of the nodes first: it must not be waiting on entities
+        # that are being destroyed (the events executor raises then).
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
