@@ -62,7 +62,7 @@ def run_then_interrupt(ros_context, tmp_path, specs, drives: list[str], command)
         tester.create_subscription(DriveStatus, f'{drive}/status', statuses[drive].append, 10)
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(tester)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     processes = start(specs, tmp_path)
     try:
         def running():
@@ -74,7 +74,8 @@ def run_then_interrupt(ros_context, tmp_path, specs, drives: list[str], command)
         logs = interrupt_all(processes)
         raise AssertionError(f'not running: {logs}') from None
     finally:
-        executor.remove_node(tester)
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
     logs = interrupt_all(processes)          # commands were streaming until now
     tester.destroy_node()
     return logs

@@ -66,14 +66,15 @@ def make_wheel(ros_context, veth_link):
         wheels.append(wheel)
         return wheel
 
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     yield make
     for wheel in wheels:
         wheel.stop_stream()
-        executor.remove_node(wheel.node)
+    spin.stop()
+    executor.shutdown(timeout_sec=1.0)
+    for wheel in wheels:
         wheel.node.destroy_node()
     tester.destroy_node()
-    executor.shutdown(timeout_sec=1.0)
 
 
 def test_drive_node_reaches_op_follows_velocity_and_reports(start_segment, make_wheel):
@@ -121,7 +122,7 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (bus, *bus.drive_nodes):
         executor.add_node(node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     controllers = bus.bus.controllers
     try:
         wait_for(lambda: all(c.state.online for c in controllers.values()), 10.0, 'both online')
@@ -142,8 +143,9 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
         assert sim.drive(1)['controlword'] & 0x70 == 0x70        # MH CoE_VL: ramp bits set
         assert sim.drive(1)['velocity_rpm'] > 90.0
     finally:
-        bus.destroy_node()
+        spin.stop()
         executor.shutdown(timeout_sec=1.0)
+        bus.destroy_node()
 
 
 def test_identity_mismatch_is_a_clear_error(start_segment, make_wheel):
@@ -289,7 +291,7 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (bus, *bus.drive_nodes):
         executor.add_node(node)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
     try:
         def both_at(velocity: float) -> bool:
@@ -326,8 +328,9 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         assert left.state.online and left.state.reconnects == left_reconnects
         wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
     finally:
-        bus.destroy_node()
+        spin.stop()
         executor.shutdown(timeout_sec=1.0)
+        bus.destroy_node()
 
 
 def test_sync_mode_dc(start_segment, make_wheel):

@@ -195,7 +195,7 @@ def test_managed_bus_moves_every_drive_through_the_transitions(ros_context, tmp_
     executor = SingleThreadedExecutor(context=ros_context)
     for each in (bus, *bus.drive_nodes, tester):
         executor.add_node(each)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
 
     def moving(velocity: float) -> bool:
         for pub in pubs:
@@ -222,6 +222,8 @@ def test_managed_bus_moves_every_drive_through_the_transitions(ros_context, tmp_
         assert change(tester, '/mb/bus', Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
         assert state(tester, '/mb/bus') == State.PRIMARY_STATE_FINALIZED
     finally:
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
         bus.destroy_node()
         tester.destroy_node()
         line.stop()

@@ -249,7 +249,7 @@ def test_sim_drive_read_only_and_line_faults_only_where_simulated(ros_context):
     executor = SingleThreadedExecutor(context=ros_context)
     executor.add_node(node)
     executor.add_node(tester)
-    spin_in_background(executor, ros_context)
+    spin = spin_in_background(executor, ros_context)
     try:
         assert not set_parameter(tester, '/simro/sim_drive', 'profile', 'imo_hd2').successful
         result = set_parameter(tester, '/simro/sim_drive', 'late_rate', 0.5)
@@ -262,7 +262,8 @@ def test_sim_drive_read_only_and_line_faults_only_where_simulated(ros_context):
         result = set_parameter(tester, '/simro/sim_drive', 'silent_unit_ids', ['x'])
         assert not result.successful and not node.drives[0].silent
     finally:
-        executor.remove_node(node)
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         tester.destroy_node()
 
