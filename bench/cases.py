@@ -256,7 +256,17 @@ def bus_efficiency(profile_name: str, units: int, framing: Framing, window: floa
         else None,
         'gap_violations': stats['gap_violations'], 'line_errors': stats['crc_errors'],
         'adapter_latency_ms': round(1000 * adapter_latency, 1),
+        **sim_timing(stats),
     }
+
+
+def sim_timing(stats: dict[str, Any]) -> dict[str, Any]:
+    """Return how late the simulator itself handed over replies (its share of a turnaround)."""
+    timed = stats.get('timed_replies', 0)
+    return {'sim_realtime': stats.get('realtime', False),
+            'sim_reply_late_us_mean': round(1e6 * stats['reply_lateness_total'] / timed, 1)
+            if timed else None,
+            'sim_reply_late_us_max': round(1e6 * stats['reply_lateness_max'], 1)}
 
 
 def wire_ratio(records: list[Any], setpoint: int, framing: Framing) -> dict[str, Any]:
@@ -698,11 +708,13 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
     return result
 
 
-def fleet(profile_name: str, units: int, framing: Framing, window: float) -> dict[str, Any]:
+def fleet(profile_name: str, units: int, framing: Framing, window: float,
+          realtime_priority: int = 0) -> dict[str, Any]:
     """Many drives on one wire-timed line, one bus_node process, as fast as the line allows.
 
     Reports the fraction of the wire's limit reached, the CPU it costs, and the
-    time from launch until every drive is online and running.
+    time from launch until every drive is online and running. ``realtime_priority``
+    is the bus's own setting (SCHED_FIFO for its control thread; 0 = normal).
     """
     profile = load_profile(profile_name)
     setpoint = profile.parameter(profile.velocity.setpoint).address
@@ -712,12 +724,14 @@ def fleet(profile_name: str, units: int, framing: Framing, window: float) -> dic
             'transport.baudrate': framing.baudrate, 'transport.parity': framing.parity,
             'transport.stopbits': framing.stopbits, 'transport.timeout': 0.1}
     result: dict[str, Any] = {'profile': profile_name, 'drives': units,
-                              'baudrate': framing.baudrate, 'framing': framing.name}
+                              'baudrate': framing.baudrate, 'framing': framing.name,
+                              'realtime_priority': realtime_priority}
+    document = _bus_document(tag, profile_name, units, link, 10000.0)
+    document['bus']['realtime_priority'] = realtime_priority
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, framing.baudrate,
                     framing.parity, framing.stopbits, emulate=True) as sim:
         wait_port(port)
-        bus = BusNodeProcess(_bus_document(tag, profile_name, units, link, 10000.0), units,
-                             tag, command_rate=20.0)
+        bus = BusNodeProcess(document, units, tag, command_rate=20.0)
         try:
             result['startup_to_all_running_s'] = round(bus.wait_all_running(120.0), 2)
             result['startup_to_all_online_s'] = round(bus.all_online_s or 0.0, 2)
@@ -725,6 +739,7 @@ def fleet(profile_name: str, units: int, framing: Framing, window: float) -> dic
             start = time.monotonic()
             result.update(_cpu_window(bus, window))
             records = sim.ask('exchanges', start)
+            result.update(sim_timing(sim.ask('stats')))
         finally:
             bus.close()
     if records:

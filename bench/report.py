@@ -35,7 +35,7 @@ def render_table(results: dict[str, Any]) -> str:
     rows = []
     for r in results.get('bus_efficiency', []):
         if 'error' in r:
-            rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 9)
             continue
         rows.append([
             f"{r['profile']} {r['stack']}", f"{r['baudrate']} {r['framing']}", str(r['drives']),
@@ -43,13 +43,14 @@ def render_table(results: dict[str, Any]) -> str:
             _fmt(r['static_theoretical_cycles_per_s'], 2), f"{100 * r['ratio']:.1f} %",
             '-' if r['target'] is None else f"{100 * r['target']:.0f} % "
             + _verdict(r['ratio'], r['target'], True),
-            _fmt(r['transactions_per_cycle'], 2), str(r['gap_violations'])])
+            _fmt(r['transactions_per_cycle'], 2), str(r['gap_violations']),
+            _fmt(r.get('sim_reply_late_us_mean'), 0)])
     if rows:
         parts.append('**1. Bus efficiency, Modbus RTU** (wire-time emulation; full command + '
                      'status cycles per second of the whole bus)\n\n' + _table(
                          ['drive, stack', 'baud', 'drives', 'cycles/s', 'wire max (frames seen)',
                           'wire max (profile)', 'ratio', 'target', 'frames/drive-cycle',
-                          't3.5 violations'], rows))
+                          't3.5 violations', 'simulator late µs (mean)'], rows))
     rows = []
     for r in results.get('software_floor', []):
         if 'error' in r:
@@ -147,13 +148,15 @@ def render_table(results: dict[str, Any]) -> str:
     rows = []
     for r in results.get('fleet', []):
         if 'error' in r:
-            rows.append([r['case'], 'error: ' + r['error']] + [''] * 7)
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 9)
             continue
         ratio = r.get('ratio')
         rows.append([f"{r['drives']} x {r['profile']}", f"{r['baudrate']} {r['framing']}",
+                     str(r.get('realtime_priority', 0)),
                      _fmt(r.get('cycles_per_s'), 2), _fmt(r.get('theoretical_cycles_per_s'), 2),
                      '-' if ratio is None else f'{100 * ratio:.1f} %',
                      f"{100 * r.get('wire_busy_ratio', 0):.1f} %", _fmt(r.get('cpu_percent'), 1),
+                     _fmt(r.get('sim_reply_late_us_mean'), 0),
                      _fmt(r.get('startup_to_all_online_s'), 1),
                      _verdict(ratio, r['target_ratio'], True) + ' / CPU ' + _verdict(
                          r.get('cpu_percent'), r['target_cpu_percent'], False)])
@@ -161,8 +164,9 @@ def render_table(results: dict[str, Any]) -> str:
         parts.append('**6. A fleet on one line** (one bus_node process, wire-time emulation, '
                      "as fast as the line allows; target ≥ 90 % of the wire's limit using "
                      '≤ 50 % of one core)\n\n' + _table(
-                         ['drives', 'baud', 'cycles/s', 'wire max', 'ratio', 'line busy',
-                          'CPU %', 'start-up to all online s', 'targets'], rows))
+                         ['drives', 'baud', 'bus RT priority', 'cycles/s', 'wire max', 'ratio',
+                          'line busy', 'CPU %', 'simulator late µs (mean)',
+                          'start-up to all online s', 'targets'], rows))
     ethercat = results.get('ethercat')
     if ethercat is not None:
         if 'skipped' in ethercat:

@@ -93,8 +93,11 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
         'boneng_am', u, cpu_window, profile_with_pyspy=not quick and e == 'events',
         executor=e)) for executor in ('single', 'events') for units in (1, 4)]
     fleet_units = 8 if quick else 32
-    fleet = [(f'fleet {fleet_units} x 115200', lambda: cases.fleet(
-        'boneng_am', fleet_units, Framing(115200), 5.0 if quick else 20.0))]
+    # The bus's control thread at normal priority, and at the realtime priority a
+    # robot would give it (bus config realtime_priority).
+    fleet = [(f'fleet {fleet_units} x 115200 prio {priority}', lambda p=priority: cases.fleet(
+        'boneng_am', fleet_units, Framing(115200), 5.0 if quick else 20.0,
+        realtime_priority=p)) for priority in (0, 50)]
     return {'bus_efficiency': efficiency, 'software_floor': floor,
             'command_latency': latency, 'adapters': adapters, 'watchdog': watchdog, 'cpu': cpu,
             'fleet': fleet}

@@ -87,6 +87,16 @@ class LineStats:
     ignored: int = 0         # requests for absent or silent drives
     gap_violations: int = 0  # requests that began < t3.5 after the previous reply (emulated)
     wrong_baud: int = 0      # requests a drive did not hear: sent at another baud rate
+    #: how late the simulator itself handed over the last byte of timed replies
+    #: (wire-time emulation): its own share of a measured turnaround, not the master's
+    timed_replies: int = 0
+    reply_lateness_total: float = 0.0
+    reply_lateness_max: float = 0.0
+
+    def record_lateness(self, seconds: float) -> None:
+        self.timed_replies += 1
+        self.reply_lateness_total += seconds
+        self.reply_lateness_max = max(self.reply_lateness_max, seconds)
 
 
 @dataclass
@@ -338,6 +348,7 @@ class SimulatedRtuLine:
                 self.stats.replies += 1
             except OSError:
                 pass
+            self.stats.record_lateness(time.monotonic() - end - self.adapter_latency)
             self._wire_free = self._last_reply_end = end
             return end
         self._wait_until(start)
@@ -363,6 +374,7 @@ class SimulatedRtuLine:
             except OSError:
                 return reply_end
             written = due
+        self.stats.record_lateness(time.monotonic() - reply_end)
         self._wire_free = self._last_reply_end = reply_end
         self.stats.replies += 1
         return reply_end
