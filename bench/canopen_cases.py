@@ -232,7 +232,9 @@ def run(quick: bool) -> dict[str, Any]:
             '(python-can virtual bus there) behind a socketcand-protocol bridge on loopback '
             "TCP, which the driver opens as python-can's socketcand interface "
             '(transport.can_options): the driver no longer shares its GIL with them, and '
-            'every frame crosses TCP (and the bridge) once, which the latency includes.')
+            'every frame crosses TCP (and the bridge) once, which the latency includes. '
+            'Connections = the TCP connections the bridge accepted: 1, unless drives went '
+            'offline (a heartbeat timeout) and the channel was opened again.')
     if any(math.isnan(r.get('cycles_per_s', math.nan)) for r in rows if 'error' not in r):
         note += ' Some rows have no cycles.'
     return {'rows': rows, 'note': note}
