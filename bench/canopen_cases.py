@@ -1,16 +1,25 @@
-"""CANopen cases: PDO cycle rate, missed cycles and command latency on python-can's virtual bus.
+"""CANopen cases: PDO cycle rate, missed cycles and command latency, drives in another process.
 
 Imports the CANopen transport and simulator at module level: if they are not
 there (or not importable), ``bench/run.py`` reports the section as skipped.
-python-can's ``virtual`` interface is in-process, so the simulated drives run in
-this process (one ticking thread); a listener on the same channel timestamps
-every frame the driver sends. The drive nodes share one CAN channel (one
-python-can handle, one ``canopen.Network``, one host heartbeat): each row records
-the handles the drivers held and the host heartbeat frames seen.
+The simulated drives and a frame recorder run in a process of their own
+(``vfd_ros2.sim.canopen_process``: a python-can ``virtual`` channel there, bridged
+to this process by a socketcand-protocol server on loopback TCP), so the driver
+here has its interpreter and GIL to itself, as it would with drives on a wire.
+The driver opens the bridge as python-can's ``socketcand`` interface with
+``transport.can_options``. The recorder stamps every frame on the monotonic clock,
+which this process shares: the moment the frame was put on the simulated bus
+(for a frame of the driver, once the bridge had read it from TCP) is compared
+with this process's publish times. The drive nodes share one CAN channel (one
+python-can handle, so one TCP connection, one ``canopen.Network``, one host
+heartbeat): each row records the handles the drivers held and the connections
+the bridge saw.
 """
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 import statistics
 import tempfile
@@ -20,7 +29,6 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-import can
 import rclpy
 import yaml
 from rclpy.context import Context
@@ -29,38 +37,27 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
-from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.bus_node import BusNode
 from vfd_ros2.ros.drive_node import DriveNode
 from vfd_ros2.ros.executable import make_executor
-from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+from vfd_ros2.sim.canopen_process import CanopenSimProcess
 from vfd_ros2.transports.canopen import open_channels
 
 from .cases import _percentile, wait_for
 
 PROFILE = 'cia402_velocity'
 
-
-class _Recorder(can.Listener):
-    def __init__(self) -> None:
-        self.frames: list[tuple[float, int, bytes]] = []
-        self.sent_at: list[float] = []      # the virtual bus's send time (time.time())
-
-    def on_message_received(self, msg: can.Message) -> None:
-        self.frames.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
-        self.sent_at.append(msg.timestamp)
+# python-can's socketcand client warns for every TCP read that ends inside a frame
+# (ordinary on a stream: it keeps the rest for the next read); at 250 Hz x 4 drives
+# that is a steady flood on stderr, written from the driver's receive thread.
+logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
 
 def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
                design: str = 'bus', priority: int = 0) -> dict[str, Any]:
     """``design``: 'bus' = one bus_node thread for the channel; 'nodes' = a drive_node each."""
-    channel = f'bench{uuid.uuid4().hex[:8]}'
-    profile = load_profile(PROFILE)
-    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in range(1, units + 1)]
-    line = SimulatedCanBus(sims, channel).start()
-    listen = can.Bus(interface='virtual', channel=channel)
-    recorder = _Recorder()
-    notifier = can.Notifier(listen, [recorder])
+    sim = CanopenSimProcess(PROFILE, range(1, units + 1), record=True).start()
+    channel = sim.bus
     context = Context()
     rclpy.init(context=context)
     tag = f'co{uuid.uuid4().hex[:6]}'
@@ -69,8 +66,9 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
     try:
         drive_settings = {'drive.profile': PROFILE, 'gear_ratio': 10.0, 'auto_enable': True,
                           'status_rate': 20.0, 'command_timeout': 0.5}
-        link = {'transport.type': 'canopen', 'transport.interface': 'virtual',
-                'transport.channel': channel}
+        link = {'transport.type': 'canopen', 'transport.interface': 'socketcand',
+                'transport.channel': channel,
+                'transport.can_options': json.dumps(sim.can_options)}
         if design == 'bus':
             path = Path(tmp.name) / 'bus.yaml'
             path.write_text(yaml.safe_dump({
@@ -124,40 +122,40 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
             next_time += period
             time.sleep(max(0.0, next_time - time.monotonic()))
         elapsed = time.monotonic() - start
-        handles = sum(1 for c in open_channels() if c.key[1] == channel)
-        heartbeat_period = max((c.heartbeat_period for c in open_channels()
-                                if c.key[1] == channel), default=0.0)
+        mine = [c for c in open_channels() if c.key[:2] == ('socketcand', channel)]
+        handles = len(mine)
+        bridge = sim.status()
+        heartbeat_period = max((c.heartbeat_period for c in mine), default=0.0)
         cycles = [c._cycle - c0 for c, c0 in zip(controllers, cycles0)]           # noqa: SLF001
         overruns = [loop._loop.overruns - o0 for loop, o0 in zip(loops, overruns0)]  # noqa
         notes = sorted({note for c in controllers for note in c.loop_notes})
-        frames = list(recorder.frames)
-        # the window in the virtual bus's clock (stamped when sent, not when this
-        # process's listener thread got round to it)
-        wall_offset = time.time() - time.monotonic()
-        sent_at = list(recorder.sent_at)[:len(frames)]
     finally:
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
         tmp.cleanup()
-        notifier.stop()
-        listen.shutdown()
-        line.stop()
+        # the drivers' socketcand connections are closed above: python-can's client
+        # spins on a connection whose server has gone
+        frames = sim.stop()
     expected = rate * elapsed
+    # Every time is the frame's moment on the simulated bus (``sent``), on the
+    # monotonic clock this process shares: not when the recorder thread got to it.
+    begin, end = start, start + elapsed
     # Latency: the first RPDO1 of node 1 (COB-ID 0x201) after a publish whose payload
     # differs from the one before it (the commanded value alternates every command).
-    rpdo = [(t, data) for t, cob, data in frames if cob == 0x201]
-    begin, end = start + wall_offset, start + elapsed + wall_offset
-    stamps = [t for t, (_, cob, _) in zip(sent_at, frames) if cob == 0x201 and begin <= t <= end]
+    rpdo = [(f.sent, f.data) for f in frames if f.cob_id == 0x201]
+    stamps = [t for t, _ in rpdo if begin <= t <= end]
     # a late slot: node 1's RPDOs more than 1.5 periods apart (the loop woke late; it
     # catches up within a period, or counts a missed cycle beyond)
     late_slots = sum(round((b - a) / period) - 1 for a, b in zip(stamps, stamps[1:])
                      if b - a > 1.5 / rate)
-    in_window = [(cob, data) for t, (_, cob, data) in zip(sent_at, frames) if begin <= t <= end]
+    in_window = [(f.cob_id, f.data) for f in frames if begin <= f.sent <= end]
     syncs = sum(1 for cob, _ in in_window if cob == 0x80)
     # what these frames would occupy on a real 1 Mbit/s bus (11-bit ids, worst-case stuffing)
     wire_bits = sum(_frame_bits(len(data)) for _, data in in_window)
-    heartbeats = [t for t, cob, _ in frames if cob == 0x77F]     # host node 127
+    heartbeats = [f.sent for f in frames if f.cob_id == 0x77F]     # host node 127
+    # the simulator process's own lag: bus moment -> its recorder thread
+    lag = [1e3 * (f.received - f.sent) for f in frames if begin <= f.sent <= end]
     latencies = []
     cursor = 0
     for published, _ in sent:
@@ -180,7 +178,9 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
         'node1_late_rpdo_slots': late_slots,
         'frames_per_s': round(len(in_window) / elapsed, 1),
         'bus_load_percent_at_1mbit': round(100.0 * wire_bits / elapsed / 1e6, 1),
-        'can_handles': handles, 'host_heartbeat_ms': round(heartbeat_period * 1000, 1),
+        'can_handles': handles, 'bridge_connections': bridge['connections'],
+        'recorder_lag_p99_ms': round(_percentile(lag, 0.99), 3) if lag else None,
+        'host_heartbeat_ms': round(heartbeat_period * 1000, 1),
         'host_heartbeat_frames': len(heartbeats),
         'latency_median_ms': round(statistics.median(latencies), 3) if latencies else None,
         'latency_p99_ms': round(_percentile(latencies, 0.99), 3) if latencies else None,
@@ -228,8 +228,13 @@ def run(quick: bool) -> dict[str, Any]:
             'elapsed - cycles completed by the slowest drive; late slots = node 1 RPDO gaps '
             'of more than 1.5 periods (jitter); bus load = the frames seen, on a 1 Mbit/s bus '
             'with worst-case bit stuffing; latency = publish -> first changed RPDO1 '
-            '(0x201) on the virtual bus. The simulated drives run in the same process '
-            "(python-can's virtual bus is in-process), so they compete for the GIL too.")
+            '(0x201) on the simulated bus. The simulated drives now run in their own process '
+            '(python-can virtual bus there) behind a socketcand-protocol bridge on loopback '
+            "TCP, which the driver opens as python-can's socketcand interface "
+            '(transport.can_options): the driver no longer shares its GIL with them, and '
+            'every frame crosses TCP (and the bridge) once, which the latency includes. '
+            'Connections = the TCP connections the bridge accepted: 1, unless drives went '
+            'offline (a heartbeat timeout) and the channel was opened again.')
     if any(math.isnan(r.get('cycles_per_s', math.nan)) for r in rows if 'error' not in r):
         note += ' Some rows have no cycles.'
     return {'rows': rows, 'note': note}

@@ -120,11 +120,14 @@ def render_table(results: dict[str, Any]) -> str:
                      str(r.get('node1_late_rpdo_slots', '')), str(r.get('sync_frames', '')),
                      _fmt(r.get('bus_load_percent_at_1mbit'), 0),
                      _fmt(r.get('latency_median_ms'), 2), _fmt(r.get('latency_p99_ms'), 2),
-                     _fmt(r.get('latency_max_ms'), 2)] for r in canopen.get('rows', [])]
-            parts.append('**4. CANopen** (python-can virtual bus)\n\n' + _table(
-                ['design', 'rt prio', 'drives', 'target Hz', 's', 'cycles/s', 'missed',
-                 'late slots', 'SYNCs', 'load % 1M', 'median ms', 'p99 ms', 'max ms'],
-                rows) + ('\n\n' + canopen['note'] if canopen.get('note') else ''))
+                     _fmt(r.get('latency_max_ms'), 2), str(r.get('bridge_connections', ''))]
+                    for r in canopen.get('rows', [])]
+            parts.append('**4. CANopen** (simulated drives in their own process, behind a '
+                         'socketcand-protocol bridge on loopback TCP)\n\n' + _table(
+                             ['design', 'rt prio', 'drives', 'target Hz', 's', 'cycles/s',
+                              'missed', 'late slots', 'SYNCs', 'load % 1M', 'median ms',
+                              'p99 ms', 'max ms', 'connections'],
+                             rows) + ('\n\n' + canopen['note'] if canopen.get('note') else ''))
     rows = []
     for r in results.get('cpu', []):
         if 'error' in r:
@@ -292,13 +295,26 @@ BOUNDS = """### Targets and what bounds them
   drive's RPDOs in one burst and then one SYNC (`transport.sync_producer`) where the
   drives take synchronous PDOs (`cia402_velocity`: transmission type 1; the Kinco stays
   event-driven), with and without `realtime_priority` (SCHED_FIFO for that thread). The
-  bus thread misses about a sixth as many cycles as the previous design, not none: in
-  this bench python-can's virtual bus is in-process, so the bus thread shares one
-  interpreter and its GIL with the four simulated drives, the executor and the command
-  publisher, and a thread that waits for the GIL is not helped by SCHED_FIFO (the rt 50
-  row is no better). On a robot the drives are on the wire, not in the process. 8 drives
-  at 500 Hz: the process cannot keep up here, and on a real 1 Mbit/s bus 8 drives x 3
-  frames x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
+  simulated drives and the frame recorder run in a process of their own
+  (`vfd_ros2/sim/canopen_process.py`), reached through a socketcand-protocol bridge on
+  loopback TCP that the driver opens as python-can's `socketcand` interface
+  (`transport.can_options`), so the driver no longer shares its GIL with them (in the
+  previous bench they shared one interpreter: 602 missed cycles for the bus thread). What
+  is left is the machine: the bench's 2 CPUs carry the driver (~0.5 core: the bus thread
+  ~0.3, the CAN receive thread, the executor and the command publisher), the simulator
+  (~0.7 core), loopback TCP and whatever else runs. A cycle's own work is ~0.65 ms of CPU
+  (p99 ~1.2 ms), yet stalls of 10-140 ms hit both processes at the same moments
+  (the driver's frames and the simulated drives' heartbeats pause together at the bridge):
+  the bus thread is runnable but gets no CPU. The figures therefore move with the
+  machine's load (a quiet 20 s window: ~5 missed; under a concurrent bench: ~500 per 60 s).
+  Stalls beyond the heartbeat timeouts (0.3 s) take drives offline and reconnect the
+  channel (`connections` > 1), which costs cycles too. `realtime_priority` does not help
+  reliably: the bus thread still needs the GIL, which the driver's other threads (normal
+  priority) may hold while descheduled. Each new command also preempts the cycle with an
+  RPDO burst and a SYNC of its own (commands stream here at the cycle rate), about twice
+  the frames (and simulator work) of one burst per cycle. 8 drives at 500 Hz: neither
+  process keeps up here, and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
+  SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
   met; about a third less than before.** The executables spin rclpy's `EventsExecutor`
   (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured side

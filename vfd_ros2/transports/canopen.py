@@ -5,10 +5,10 @@ of drives, profiles or scaling (``vfd_ros2.drives.canopen`` does). The library d
 protocol work:
 
 - ``CanChannel``: one python-can bus and one ``canopen.Network`` (one notifier
-  thread) per (interface, channel, bitrate) in this process, shared by every node
-  and every transport on it, and closed with the last node (adapters such as PCAN
-  or Kvaser allow one open handle per channel). The host heartbeat is produced
-  once per channel with ``Network.send_periodic``.
+  thread) per (interface, channel, bitrate, ``transport.can_options``) in this
+  process, shared by every node and every transport on it, and closed with the last
+  node (adapters such as PCAN or Kvaser allow one open handle per channel). The
+  host heartbeat is produced once per channel with ``Network.send_periodic``.
 - per node a ``canopen.RemoteNode``: ``sdo`` (expedited transfers; aborts arrive
   as ``SdoAbortedError`` and keep its CiA 301 text table), ``nmt`` (commands,
   heartbeat and boot-up reception), ``emcy`` (``EmcyConsumer``: active errors,
@@ -24,6 +24,7 @@ used by the simulated twin).
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import queue
@@ -176,9 +177,45 @@ def _codec(index: int, subindex: int, value_type: ValueType) -> od.ODVariable:
     return od_variable(f'0x{index:04X}:{subindex:02X}', index, subindex, value_type)
 
 
+#: ``can.Bus`` arguments that have their own transport settings (a second value in the
+#: options would make the call fail with a TypeError, or silently win)
+_OWN_ARGUMENTS = {'interface': 'transport.interface', 'channel': 'transport.channel',
+                  'bitrate': 'transport.bitrate'}
+
+
+def parse_can_options(options: str | Mapping[str, Any] | None) -> dict[str, Any]:
+    """Return the extra ``can.Bus`` keyword arguments of ``transport.can_options``.
+
+    A ROS parameter cannot be a mapping, so the setting is a JSON object in a string
+    ('' = none); a bus file may also give a YAML mapping. Raises ParameterError for bad
+    JSON, a non-object, or an argument that has its own setting.
+    """
+    if options is None or options == '':
+        return {}
+    if isinstance(options, str):
+        try:
+            parsed = json.loads(options)
+        except ValueError as exc:
+            raise ParameterError(f'transport.can_options is not valid JSON ({exc}): '
+                                 f'{options!r}') from exc
+    else:
+        parsed = options
+    if not isinstance(parsed, Mapping):
+        raise ParameterError('transport.can_options must be a JSON object of can.Bus keyword '
+                             f'arguments (e.g. {{"host": "127.0.0.1", "port": 29536}}), got '
+                             f'{type(parsed).__name__}: {options!r}')
+    for key in parsed:
+        if not isinstance(key, str) or not key.isidentifier():
+            raise ParameterError(f'transport.can_options: {key!r} is not a keyword argument name')
+        if key in _OWN_ARGUMENTS:
+            raise ParameterError(f'transport.can_options: set {key!r} with '
+                                 f'{_OWN_ARGUMENTS[key]}, not here')
+    return dict(parsed)
+
+
 # --- the channel: one bus, one Network, one host heartbeat --------------------------------
 
-_CHANNELS: dict[tuple[str, str, int], 'CanChannel'] = {}
+_CHANNELS: dict[tuple[str, str, int, str], 'CanChannel'] = {}
 _CHANNELS_LOCK = threading.Lock()
 
 
@@ -196,7 +233,7 @@ class CanChannel:
     and one notifier thread, whichever transport or thread drives it.
     """
 
-    def __init__(self, key: tuple[str, str, int], network: canopen.Network) -> None:
+    def __init__(self, key: tuple[str, str, int, str], network: canopen.Network) -> None:
         self.key = key
         self.network = network
         self.users = 0
@@ -233,19 +270,29 @@ class CanChannel:
 
     @classmethod
     def acquire(cls, interface: str, channel: str, bitrate: int = 0,
-                bus_factory: Callable[..., Any] | None = None) -> 'CanChannel':
-        """Return the open channel (opening it if needed) with one more user."""
-        key = (interface, channel, int(bitrate))
+                bus_factory: Callable[..., Any] | None = None,
+                options: Mapping[str, Any] | None = None) -> 'CanChannel':
+        """Return the open channel (opening it if needed) with one more user.
+
+        ``options``: extra ``can.Bus`` keyword arguments (``parse_can_options``). They
+        are part of the channel's identity: 'can0' behind two socketcand servers (two
+        host/port pairs) is two buses.
+        """
+        extra = dict(options or {})
+        key = (interface, channel, int(bitrate), json.dumps(extra, sort_keys=True))
         with _CHANNELS_LOCK:
             found = _CHANNELS.get(key)
             if found is None:
-                kwargs: dict[str, Any] = {'interface': interface, 'channel': channel}
+                kwargs: dict[str, Any] = {**extra, 'interface': interface, 'channel': channel}
                 if bitrate:
                     kwargs['bitrate'] = int(bitrate)
                 try:
                     bus = (bus_factory or can.Bus)(**kwargs)
                 except (can.CanError, OSError, ValueError, ImportError) as exc:
                     raise TransportError(f'cannot open CAN {interface}:{channel}: {exc}') from exc
+                except TypeError as exc:     # an option the interface does not take
+                    raise ParameterError(f'cannot open CAN {interface}:{channel} with '
+                                         f'transport.can_options {extra}: {exc}') from exc
                 network = canopen.Network(bus)
                 network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
                 network.connect()
@@ -352,6 +399,9 @@ class CanopenTransport(Transport):
         TransportParameter('sync_producer', True, "send SYNC (0x080) after each cycle's RPDOs "
                            'where the drives use synchronous PDOs; false when another device '
                            '(or process) on the bus produces SYNC'),
+        TransportParameter('can_options', '', 'extra can.Bus keyword arguments as a JSON '
+                           'object, e.g. {"host": "127.0.0.1", "port": 29536, "tcp_tune": '
+                           'true} for socketcand; empty = none'),
     )
     shared_by_drives = True    # one transport per channel; bus_node opens the channel once
 
@@ -359,6 +409,7 @@ class CanopenTransport(Transport):
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
                  heartbeat_timeout: float = 0.0, host_node_id: int = 127,
                  host_heartbeat_ms: int = 0, sync_producer: bool = True,
+                 can_options: str | Mapping[str, Any] | None = None,
                  bus_factory: Callable[..., Any] | None = None) -> None:
         super().__init__()
         if not timeout > 0:
@@ -378,6 +429,7 @@ class CanopenTransport(Transport):
         self.host_node_id = int(host_node_id)
         self.host_heartbeat_ms = int(host_heartbeat_ms)
         self.sync_producer = bool(sync_producer)
+        self.can_options = parse_can_options(can_options)
         self.syncs = 0                 # SYNC frames sent
         self._last_rpdo = 0            # the channel's order number of this transport's last RPDO
         self._bus_factory = bus_factory
@@ -396,7 +448,8 @@ class CanopenTransport(Transport):
                    heartbeat_timeout=float(settings.get('heartbeat_timeout', 0.0) or 0.0),
                    host_node_id=int(settings.get('host_node_id', 127) or 127),
                    host_heartbeat_ms=int(settings.get('host_heartbeat_ms', 0) or 0),
-                   sync_producer=bool(settings.get('sync_producer', True)))
+                   sync_producer=bool(settings.get('sync_producer', True)),
+                   can_options=settings.get('can_options', '') or '')
 
     @property
     def description(self) -> str:
@@ -435,7 +488,7 @@ class CanopenTransport(Transport):
             return
         try:
             self.channel = CanChannel.acquire(self.interface, self.channel_name, self.bitrate,
-                                              self._bus_factory)
+                                              self._bus_factory, self.can_options)
         except TransportError:
             self.stats.connect_failures += 1
             raise
