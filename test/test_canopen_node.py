@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import can
 import pytest
@@ -309,3 +310,35 @@ def test_kinco_refuses_the_consumer_heartbeat_and_diagnostics_warn(make_can_harn
     assert 'no drive-side host-loss protection' in warn.message
     values = {kv.key: kv.value for kv in warn.values}
     assert values['host-loss protection'].startswith('none')
+
+
+def test_new_commands_wait_for_the_sync_cycle_but_a_watchdog_stop_does_not(make_can_harness):
+    """On a SYNC-driven bus a new value goes out with the next cycle's SYNC.
+
+    An early burst would add a SYNC off the cycle period (the drives' communication
+    cycle) and, with a planner streaming new values, one extra burst per command;
+    the watchdog's stop still goes out at once.
+    """
+    h = make_can_harness(node_parameters={'auto_enable': True, 'control_rate': 4.0,
+                                          'command_timeout': 0.5})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running, 6.0, 'running')
+    wheel.stop_stream()
+    listener = can.Bus(interface='virtual', channel=h.channel)
+    try:
+        start = time.monotonic()
+        for index in range(40):                     # a new value every 25 ms for 1 s
+            wheel.publish(1.0 + 0.1 * (index % 2))
+            time.sleep(0.025)
+        last_command = time.monotonic()
+        syncs = 0
+        while (message := listener.recv(timeout=0)) is not None:
+            syncs += message.arbitration_id == 0x80
+        assert syncs <= 4.0 * (last_command - start) + 2, syncs     # 4 Hz, not per command
+        wait_for(lambda: sim.target_raw == 0, 2.0, 'the watchdog stop applied')
+        stopped_after = time.monotonic() - last_command
+    finally:
+        listener.shutdown()
+    # within command_timeout and a margin, not up to a cycle (0.25 s) later
+    assert stopped_after < 0.5 + 0.1, stopped_after

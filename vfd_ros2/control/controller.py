@@ -169,8 +169,10 @@ class DriveController:
         clamped = min(max(velocity, -limit), limit)
         with self._lock:
             # A new value, or the first command after a watchdog stop, preempts the
-            # cycle; a repeated one waits for it.
-            urgent = clamped != self._velocity or self._watchdog.expired
+            # cycle; a repeated one waits for it, and so does any on a link whose
+            # cycle applies the commands (CANopen SYNC).
+            urgent = (clamped != self._velocity or self._watchdog.expired) and \
+                not self.drive.transport.commands_keep_the_cycle
             self._velocity = clamped
             self._watchdog.feed()
             self._command_pending |= urgent

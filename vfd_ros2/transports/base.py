@@ -115,6 +115,18 @@ class Transport(abc.ABC):
         """Time one exchange with a silent drive occupies the link (its timeout)."""
         return float(getattr(self, 'timeout', 0.1))
 
+    @property
+    def commands_keep_the_cycle(self) -> bool:
+        """Return whether a new command should wait for the next cycle, not preempt it.
+
+        True where the drives apply commands on a trigger the cycle produces at its
+        own period (CANopen SYNC): an early burst would add a SYNC off the period
+        (the drives' communication cycle) and, with commands streaming at the cycle
+        rate, double the frames on the bus, to gain less than one period. A
+        tripped watchdog's stop still preempts.
+        """
+        return False
+
     def end_command_burst(self) -> None:
         """Every drive on this link has written this cycle's command (or a preempt's).
 

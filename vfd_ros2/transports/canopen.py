@@ -618,11 +618,16 @@ class CanopenTransport(Transport):
             self.count(unit, 'bad_frames')
             raise TransportError(f'cannot send {what} on {self.description}: {exc}') from exc
 
+    @property
+    def commands_keep_the_cycle(self) -> bool:
+        """Return whether this transport's SYNC applies the commands (see Transport)."""
+        return self.sync_producer and any(link.synchronous and link.node is not None
+                                          for link in self._links.values())
+
     def end_command_burst(self) -> None:
         """Send one SYNC after the cycle's RPDOs when a node applies them on SYNC."""
         channel = self.channel
-        if not self.sync_producer or channel is None or not any(
-                link.synchronous and link.node is not None for link in self._links.values()):
+        if channel is None or not self.commands_keep_the_cycle:
             return
         try:
             if channel.sync_after(self._last_rpdo):
