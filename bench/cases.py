@@ -537,7 +537,7 @@ def _proc_rss_mb(pid: int) -> float:
 
 
 def _thread_cpu(pid: int) -> dict[str, float]:
-    """CPU seconds per thread name (Fast DDS names its threads; Python's are 'python')."""
+    """Return CPU seconds per thread: Fast DDS's by name, 'control loop', other 'python'."""
     ticks = os.sysconf('SC_CLK_TCK')
     result: dict[str, float] = {}
     for task in Path(f'/proc/{pid}/task').iterdir():
@@ -546,7 +546,8 @@ def _thread_cpu(pid: int) -> dict[str, float]:
         except OSError:
             continue
         name = head.split('(', 1)[1]
-        name = 'python' if name.startswith('python') else name.rstrip('0123456789.')
+        name = 'python' if name.startswith('python') else 'control loop' \
+            if name.startswith('vfd ') else name.rstrip('0123456789.')
         fields = tail.split()
         result[name] = result.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
     return result

@@ -131,12 +131,15 @@ def render_table(results: dict[str, Any]) -> str:
     rows = []
     for r in results.get('cpu', []):
         if 'error' in r:
-            rows.append([r['case'], 'error: ' + r['error'], '', '', '', ''])
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
             continue
         threads = r.get('cpu_percent_by_thread', {})
         rows.append([EXECUTORS.get(r.get('executor', 'single'), '?'), str(r['drives']),
                      _fmt(r['approx_cycles_per_s'], 1), _fmt(r['cpu_percent'], 1),
-                     _fmt(r['cpu_percent_per_drive'], 1), _fmt(threads.get('python'), 1),
+                     _fmt(r['cpu_percent_per_drive'], 1), _fmt(threads.get('control loop'), 1),
+                     _fmt(threads.get('python'), 1),
+                     _fmt(1e4 * r['cpu_percent'] / r['transactions_per_s'], 0)
+                     if r.get('transactions_per_s') else '-',
                      _fmt(r['rss_mb'], 0),
                      f"≤ {r['target_percent_per_drive']:g} % "
                      + _verdict(r['cpu_percent_per_drive'], r['target_percent_per_drive'],
@@ -146,7 +149,9 @@ def render_table(results: dict[str, Any]) -> str:
                      '20 Hz status, commands at 50 Hz; no wire time, so the figure is the '
                      "driver's own cost)\n\n" + _table(
                          ['executor', 'drives', 'cycles/s per drive', 'CPU % (one core)',
-                          'CPU % per drive', 'of it Python threads %', 'RSS MB',
+                          'CPU % per drive', 'of it control thread %',
+                          'executor and other Python threads %',
+                          'process CPU µs per Modbus transaction', 'RSS MB',
                           'target per drive'], rows))
     rows = []
     for r in results.get('fleet', []):
