@@ -241,12 +241,14 @@ Measured by `{command}` (`bench/run.py`, about 15 minutes on 2 cores; `scripts/b
 machine: the simulated drives in their own process behind a pseudo-terminal whose wire
 time is emulated at the baud rate (`vfd_ros2/sim/rtu_line.py`: a request is complete only
 at its last byte, the reply starts t3.5 after it and its bytes reach the pty as each would
-finish on the wire, never earlier), loopback TCP, python-can's virtual bus, DDS on
-localhost. Theoretical maximum = (request + reply bytes) × character time + 2 × t3.5 per
-transaction (t3.5 = 3.5 characters, 1.75 ms above 19200 baud), summed over the frames
-actually exchanged between two setpoint writes of drive 1 (`frames seen`) and, as a
-cross-check, over the profile's planned cycle (`profile`). The drive's own response delay
-is 0. Figures compare only within one run on one machine.
+finish on the wire, never earlier; the process runs at SCHED_FIFO where allowed, since it
+stands in for drive hardware, and `simulator late µs` is its own lateness handing over a
+reply's last byte), loopback TCP, CANopen drives behind a socketcand-protocol bridge on
+loopback TCP, DDS on localhost. Theoretical maximum = (request + reply bytes) × character
+time + 2 × t3.5 per transaction (t3.5 = 3.5 characters, 1.75 ms above 19200 baud),
+summed over the frames actually exchanged between two setpoint writes of drive 1 (`frames
+seen`) and, as a cross-check, over the profile's planned cycle (`profile`). The drive's
+own response delay is 0. Figures compare only within one run on one machine.
 
 {table}
 
@@ -259,19 +261,25 @@ BOUNDS = """### Targets and what bounds them
 - **Bus efficiency (≥ 90 % at 115200 with 1 and 4 drives, ≥ 95 % at 19200 and below).**
   RTU transactions run on `vfd_ros2/transports/rtu_link.py`: pymodbus' `FramerRTU` and PDU
   classes over pyserial (byte-identical frames), the reply read by its known length in
-  `select` with deadlines from the baud rate, t3.5 of silence kept before each request.
-  What is left to the wire's limit is turnaround per transaction: two scheduler wake-ups
-  (the master seeing the reply's last byte, the slave seeing the request) plus the GIL
-  hand-over from the rclpy executor thread, ~0.2-0.4 ms. It weighs most at 115200 baud
-  with 4 drives (a transaction is ~5 ms, and four nodes' status/command callbacks compete
-  for the GIL). What moves the cycle rate further is fewer transactions, not a faster
-  stack: the BONENG AM allows 5 registers per read and no reads across undocumented
-  addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and above 19200
-  baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM drives on one
-  115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive per line
-  or slower status polling (`every:` in the profile). At 115200 the margin is thin and
-  moves between runs on this shared 2-core machine (one drive: 82-94 % in back-to-back
-  runs of the same code): the turnaround above is the part that varies.
+  `select` with deadlines from the baud rate, t3.5 of silence kept before each request. A
+  checked reply goes straight to its PDU class (pymodbus' `handleFrame` checked the CRC a
+  second time and formatted every PDU for a debug log: a third of a transaction's CPU), and
+  the rest of a frame is read without a `select` when it is already in (software floor:
+  ~65-100 µs of CPU per transaction, ~100-120 before). What is left to the wire's limit is
+  turnaround per transaction: scheduler wake-ups on both sides (the master seeing the
+  reply's last byte, the slave seeing the request) and the GIL hand-over from the rclpy
+  executor thread. The simulator's own share is measured now (`simulator late µs`: how
+  late it handed over a reply's last byte; it runs at SCHED_FIFO, as it stands in for
+  hardware, which took 50-100 µs off each turnaround); the GIL switch interval is 0.1 ms
+  since this run (0.5 ms here; the fleet case below gained ~3 points with it). What moves
+  the cycle rate further is fewer transactions, not a faster stack: the BONENG AM allows 5
+  registers per read and no reads across undocumented addresses, so a cycle is 1 write +
+  4-6 reads (`frames/drive-cycle`), and above 19200 baud the spec's fixed 1.75 ms t3.5 is
+  ~2/3 of every transaction. Four AM drives on one 115200 line get ~8-9 full cycles/s each
+  (`wire max`); 50 Hz needs one drive per line or slower status polling (`every:` in the
+  profile). The figures move with the machine: two later full runs on this VM while the
+  host took CPU time from it (steal) gave 68-84 % at 115200 with one drive, with the
+  simulator itself 170-480 µs late per reply.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -294,58 +302,59 @@ BOUNDS = """### Targets and what bounds them
   need a drive that accepts a new request before the reply to the previous one (not
   Modbus RTU), or shorter status reads (fewer registers per read lowers the in-flight
   wait: profile `every:` / `max_read_registers`). TCP has no such serialisation.
-- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — not met in this bench.**
-  The table puts the previous design (a `drive_node` per drive, each with its own loop
-  thread) next to what ships: one `bus_node` thread per CAN channel that writes every
-  drive's RPDOs in one burst and then one SYNC (`transport.sync_producer`) where the
-  drives take synchronous PDOs (`cia402_velocity`: transmission type 1; the Kinco stays
-  event-driven), with and without `realtime_priority` (SCHED_FIFO for that thread). The
+- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — close, not met.** The table
+  puts the previous design (a `drive_node` per drive, each with its own loop thread) next to
+  what ships: one `bus_node` thread per CAN channel that writes every drive's RPDOs in one
+  burst and then one SYNC (`transport.sync_producer`) where the drives take synchronous PDOs
+  (`cia402_velocity`: transmission type 1; the Kinco stays event-driven), with and without
+  `realtime_priority` (SCHED_FIFO for that thread). Two changes since the last run: the
   simulated drives and the frame recorder run in a process of their own
   (`vfd_ros2/sim/canopen_process.py`), reached through a socketcand-protocol bridge on
   loopback TCP that the driver opens as python-can's `socketcand` interface
-  (`transport.can_options`), so the driver no longer shares its GIL with them (in the
-  previous bench they shared one interpreter: 602 missed cycles for the bus thread). What
-  is left is the machine: the bench's 2 CPUs carry the driver (~0.5 core: the bus thread
-  ~0.3, the CAN receive thread, the executor and the command publisher), the simulator
-  (~0.7 core), loopback TCP and whatever else runs. A cycle's own work is ~0.65 ms of CPU
-  (p99 ~1.2 ms), yet stalls of 10-140 ms hit both processes at the same moments
-  (the driver's frames and the simulated drives' heartbeats pause together at the bridge):
-  the bus thread is runnable but gets no CPU. The figures therefore move with the
-  machine's load (a quiet 20 s window: ~5 missed; under a concurrent bench: ~500 per 60 s).
-  Stalls beyond the heartbeat timeouts (0.3 s) take drives offline and reconnect the
-  channel (`connections` > 1), which costs cycles too. `realtime_priority` does not help
-  reliably: the bus thread still needs the GIL, which the driver's other threads (normal
-  priority) may hold while descheduled. Each new command also preempts the cycle with an
-  RPDO burst and a SYNC of its own (commands stream here at the cycle rate), about twice
-  the frames (and simulator work) of one burst per cycle. 8 drives at 500 Hz: neither
-  process keeps up here, and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
-  SYNC would exceed the bus's capacity anyway (`load % 1M`).
+  (`transport.can_options`), so the driver no longer shares its GIL with them; and on a
+  SYNC-driven bus a new command waits for the next cycle's SYNC instead of preempting the
+  cycle with a burst and a SYNC of its own, which had doubled the frames when commands
+  stream at the cycle rate (`SYNCs` = cycles now; latency median ~1.3-2.9 ms, within one
+  4 ms period). The bus thread went from 602 missed cycles over 60 s (previous bench,
+  simulator in the driver's process) to 27-34. What is left is the machine: its 2 CPUs
+  carry the driver (~0.5 core: bus thread, CAN receive thread, executor, the bench's
+  command publisher in the same process), the simulator (most of a core: Python answering
+  ~3000 frames/s, hence left at normal priority: at SCHED_FIFO it pre-empted the driver and
+  missed more) and loopback TCP, and a cycle that wakes late by more than a period is
+  missed. 8 drives at 500 Hz: neither process keeps up here, and on a real 1 Mbit/s bus 8
+  drives x 3 frames x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
-  met; about a third less than before.** The executables spin rclpy's `EventsExecutor`
+  met; half the previous design's.** The executables spin rclpy's `EventsExecutor`
   (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured side
   by side): the single-threaded one rebuilt its wait set from every entity on every
   wake-up (py-spy: ~80 % of a 32-drive bus_node). The wheel's events executor does not
   await coroutine callbacks (ros2/rclpy#1473), so the drive services are answered from
   the control thread (`ros/deferred_service.py`), and a bus publishes every drive's
-  status and diagnostics from one timer per rate. The executor thread is now ~4 % of a
-  core for 4 drives; what is left is the control thread: ~100 µs of Python per Modbus
-  transaction on a pty (`software floor`: pymodbus' PDU and framer, the reply checks, the
-  syscalls) x ~5.4 transactions per drive-cycle x 50 Hz, ~3 % of a core per drive before
+  status and diagnostics from one timer per rate. The control loops name their OS thread
+  (`vfd bus ...`), so the table splits the process: the executor side is ~2.5 % of a core
+  for one drive and ~4 % for four — rclpy's own cost per message (a bare Float64
+  subscription at 200 Hz costs ~280 µs of CPU per message in the executor and Fast DDS
+  threads with the events executor, ~760 µs with the single-threaded one), here 50
+  commands/s per drive plus 20 Hz status. The rest is the control thread: ~130-170 µs of CPU
+  per Modbus transaction on a pty (half of it system time: select, read, write and the
+  wake-ups) x ~5.4 transactions per drive-cycle x 50 Hz, ~3.5 % of a core per drive before
   any ROS work. What would move it further: fewer transactions per cycle (the profile's
   `every:` for slow values, a drive that allows longer reads), not a faster executor.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
-  core).** Before this change one bus_node was CPU-bound at 101 % with 0.4 cycles/s per
-  drive. Four things held it back, each fixed: the executor's wait set (above); the
-  GIL hand-over — a control thread woken by a reply waited up to Python's 5 ms switch
-  interval while the executor ran callbacks (the executables now set 0.5 ms); checks
-  before every status read that scanned every drive (now nothing runs unless a command
-  waits or a watchdog may be due); and in the bench itself, the simulated line advanced
-  all 32 drive models after every frame, which held replies back by milliseconds.
-  What is left to 90 %: the per-transaction turnaround (above) on a machine that also
-  runs the 32 simulated drives. Start-up to all online is bounded by design: a bus
-  connects one offline drive per cycle, so every online drive stays addressed well within
-  its comm-loss timeout (issue 9), and a cycle of n online drives takes n x ~30 ms at
-  115200.
+  core) — CPU met, the wire's limit just short: 87.2 % at normal priority, 89.9 % with the
+  bus's `realtime_priority: 50`.** Before the executor change one bus_node was CPU-bound at
+  101 % with 0.4 cycles/s per drive. What held it back, each fixed: the executor's wait
+  set (above); the GIL hand-over — a control thread woken by a reply waited up to Python's
+  5 ms switch interval while the executor ran callbacks (the executables set 0.5 ms in this
+  run, 0.1 ms since: +2.5 to +3.5 points in back-to-back fleet runs at both priorities,
+  same CPU); checks before every status read that scanned every drive (now nothing runs
+  unless a command waits or a watchdog may be due); and in the bench itself, the simulated
+  line advanced all 32 drive models after every frame and its process ran at normal
+  priority, which held replies back. What is left is the per-transaction turnaround
+  (above): ~0.55 ms per ~5 ms transaction at 115200. Start-up to all online is bounded by
+  design: a bus connects one offline drive per cycle, so every online drive stays
+  addressed well within its comm-loss timeout (issue 9), and a cycle of n online drives
+  takes n x ~30 ms at 115200.
 - **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not met on this machine; 1 ms
   reported as measured.** The plan runs 10 s per case (not 60 s) to keep the bench near 15
   minutes. The process-data thread (`EthercatSegment._cycle`) is a Python loop that sleeps
