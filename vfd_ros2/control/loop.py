@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import logging
 import os
 import threading
 import time
 from typing import Callable
+
+from ..protocol.linux_thread import name_os_thread
 
 log = logging.getLogger(__name__)
 
@@ -120,19 +120,3 @@ class CycleLoop:
                 if self._preempt is not None and not self._stop.is_set():
                     self._guarded(self._preempt)
         self._guarded(self._finish)
-
-
-_PR_SET_NAME = 15
-
-
-def name_os_thread(name: str) -> None:
-    """Name the calling thread for the OS (``top -H``, ``ps -L``; 15 bytes on Linux).
-
-    Python 3.11 names threads only for itself: without this, a driver's control
-    thread shows up as one more ``python3`` next to the executor's. Elsewhere a no-op.
-    """
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-        libc.prctl(_PR_SET_NAME, name.encode(errors='replace')[:15], 0, 0, 0)
-    except (OSError, AttributeError):
-        pass

@@ -14,9 +14,6 @@ V1.02" section 2.5.1.1:
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-
 #: the spec's fixed t3.5 above 19200 baud, in seconds
 FIXED_GAP = 0.00175
 FIXED_GAP_ABOVE_BAUD = 19200
@@ -53,20 +50,3 @@ def transaction_time(request_bytes: int, reply_bytes: int, char_time: float,
     drive's own response delay is not included.
     """
     return (request_bytes + reply_bytes) * char_time + 2 * gap
-
-
-_PR_SET_TIMERSLACK = 29
-
-
-def tighten_timer_slack() -> None:
-    """Let the calling thread's sleeps end within ~1 us of their deadline (Linux only).
-
-    The default timer slack (50 us) would be added to every timed wait of the
-    RTU master (t3.5) and of the simulated line (byte times); at 115200 baud a
-    whole transaction is ~5 ms. Elsewhere this does nothing.
-    """
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-        libc.prctl(_PR_SET_TIMERSLACK, 1000, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass

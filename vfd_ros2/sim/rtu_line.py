@@ -69,7 +69,8 @@ from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
-from ..protocol.rtu_timing import character_time, frame_gap, tighten_timer_slack
+from ..protocol.linux_thread import tighten_timer_slack
+from ..protocol.rtu_timing import character_time, frame_gap
 from .dispatch import answer
 from .model import SimulatedDrive
 

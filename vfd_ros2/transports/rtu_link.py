@@ -57,7 +57,8 @@ import serial
 from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
-from ..protocol.rtu_timing import character_time, frame_gap, tighten_timer_slack
+from ..protocol.linux_thread import tighten_timer_slack
+from ..protocol.rtu_timing import character_time, frame_gap
 
 #: longest RTU frame (Modbus over Serial Line V1.02, 2.5.1.1: 256 bytes)
 MAX_FRAME = 256
