@@ -315,6 +315,11 @@ class DiffDriveRig:
         with self.feeding:
             self.left.position, self.right.position = left, right
 
+    def set_measured(self, left: float, right: float) -> None:
+        """Both wheels' measured speeds at once (a tick between them mixes old and new)."""
+        with self.feeding:
+            self.left.measured, self.right.measured = left, right
+
     def send(self, linear: float, angular: float) -> None:
         twist = Twist()
         twist.linear.x, twist.angular.z = linear, angular
@@ -383,7 +388,7 @@ def test_inversion_applies_to_commands_and_measurements(make_rig):
     rig.twist = (0.5, 0.4)
     rig.wait_commands(4.0, -6.0, what='right wheel inverted')
     # A drive that follows: it reports its command as measured (right: inverted again).
-    rig.left.measured, rig.right.measured = 4.0, -6.0
+    rig.set_measured(4.0, -6.0)
     odom = wait_for(lambda: rig.odom and rig.odom[-1].twist.twist.linear.x > 0.1 and
                     rig.odom[-1], 3.0, 'odom twist')
     assert odom.twist.twist.linear.x == pytest.approx(0.5)
@@ -429,9 +434,9 @@ def test_odometry_integrates_measured_speeds_in_rep105_frames(make_rig):
              'odom with valid twist')
     assert rig.odom[-1].pose.pose.position.x == 0.0
     start = time.monotonic()
-    rig.left.measured = rig.right.measured = 3.0
+    rig.set_measured(3.0, 3.0)
     wait_for(lambda: time.monotonic() - start > 1.0, 2.0, '1 s of driving')
-    rig.left.measured = rig.right.measured = 0.0
+    rig.set_measured(0.0, 0.0)
     driven = time.monotonic() - start
     wait_for(lambda: rig.odom[-1].twist.twist.linear.x == 0.0, 2.0, 'stopped')
     final = rig.odom[-1]
@@ -454,7 +459,7 @@ def test_odometry_integrates_measured_speeds_in_rep105_frames(make_rig):
 def test_odometry_turns_counter_clockwise_for_positive_yaw_rate(make_rig):
     rig = make_rig(odom_frame='map_odom', base_frame='robot_base')
     wait_for(lambda: rig.odom and rig.odom[-1].twist.covariance[0] < 1.0, 3.0, 'valid odom')
-    rig.left.measured, rig.right.measured = -2.5, 2.5              # 1 rad/s on the spot
+    rig.set_measured(-2.5, 2.5)                                    # 1 rad/s on the spot
     wait_for(lambda: rig.odom[-1].pose.pose.orientation.z > math.sin(0.25), 3.0,
              'yaw past 0.5 rad')
     odom = rig.odom[-1]
@@ -465,7 +470,7 @@ def test_odometry_turns_counter_clockwise_for_positive_yaw_rate(make_rig):
 
 def test_stale_or_offline_wheel_holds_pose_with_unknown_twist(make_rig):
     rig = make_rig()
-    rig.left.measured = rig.right.measured = 2.0
+    rig.set_measured(2.0, 2.0)
     wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.position.x > 0.05, 3.0, 'moving')
     rig.right.publishing = False                              # right drive's status stops
     held = wait_for(lambda: rig.odom[-1].twist.covariance[0] == UNKNOWN_VARIANCE and
