@@ -244,7 +244,7 @@ def joint_bus(ros_context, tmp_path):
     threading.Thread(target=stream, daemon=True).start()
     bench = type('JointBus', (), {})()
     bench.__dict__.update(sims=sims, bus=bus, states=states, command=command, prefix=prefix,
-                          executor=executor, context=ros_context,
+                          executor=executor, spin=spin, context=ros_context,
                           statuses=lambda: {w: n.controller.state for w, n in
                                             zip(WHEELS, bus.drive_nodes)})
     wait_for(lambda: all(s.online for s in bench.statuses().values()), 10.0, 'drives online')
@@ -336,5 +336,7 @@ def test_diff_drive_odometry_follows_the_drives_counters(joint_bus):
                  'odometry = the counted turns')
         assert diff.odometry_source == 'position'
     finally:
+        # Stop spinning first: a wait in progress may still hold the node's entities.
+        joint_bus.spin.stop()
         joint_bus.executor.remove_node(diff)
         diff.destroy_node()
