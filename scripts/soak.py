@@ -143,7 +143,9 @@ def run(drives: int, seconds: float, seed: int, out=sys.stdout) -> Report:
                             f'{now - start:.1f} s (the drive has {sims[index].fault_code})')
                     if controller.submit('reset_fault').result(timeout=5).success:
                         report.faults_reset += 1
-                if index not in unplugged and state.online:
+                # Back for good once a status read shows it ready: just after a
+                # reconnect, its own comm-loss fault may not have been read yet.
+                if index not in unplugged and state.online and state.ready:
                     unplugged_since.pop(index, None)
             time.sleep(0.05)
     finally:

@@ -19,8 +19,11 @@ from std_srvs.srv import Trigger
 from harness import wait_for
 from unit_support import shipped_profile
 from vfd_ros2.control.bus import Bus, parse_bus_config
+from vfd_ros2.control.controller import STATUS_NOT_READ
+from vfd_ros2.control.factory import build_controller
+from vfd_ros2.control.state import RunState
 from vfd_ros2.drives.base import HOST_LOSS_JITTER, size_comm_timeout
-from vfd_ros2.errors import ParameterError
+from vfd_ros2.errors import CommTimeout, ParameterError
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, transaction_time
 from vfd_ros2.sim.model import SimulatedDrive
@@ -136,7 +139,6 @@ def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
 
 def test_a_garbled_line_never_lets_the_drive_time_out(tmp_path):
     """Going offline on garbage must not let the drive's own timer expire (keep-alive)."""
-    from vfd_ros2.control.factory import build_controller
     profile = shipped_profile('boneng_am')
     sim = SimulatedDrive(profile, 1, {'acceleration_time': 0.5})
     port = str(tmp_path / 'line')
@@ -208,6 +210,51 @@ def test_control_owned_registers_are_refused(make_harness, code, value, hint):
         == {a: v for a, v in before.items() if a == h.profile.parameter(code).address}
     got = h.call(GetDriveParameter, 'get_drive_parameter', GetDriveParameter.Request(name=code))
     assert got.success and not got.writable
+
+
+def test_no_run_before_the_first_status_read_after_connect(tmp_path):
+    """Connected, but the status reads fail: nothing known, so idle and not "fault-free".
+
+    (Before, the empty reading of a fresh connect let the next cycle write run to a
+    drive whose fault state nobody had read yet, e.g. its own comm-loss fault.)
+    """
+    profile = shipped_profile('boneng_am')
+    sim = SimulatedDrive(profile, 1, {'acceleration_time': 0.5})
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine([sim], port).start()
+    controller = build_controller({'transport.port': port, 'auto_enable': True,
+                                   'comm_loss_threshold': 12})
+    real_poll, failing = controller.drive.poll, [8]
+    seen: list[tuple[bool, object]] = []
+
+    def poll(*args, **kwargs):
+        if failing[0]:          # the status reads of the first cycles get no reply
+            failing[0] -= 1
+            seen.append((sim.run_requested, controller.state))
+            raise CommTimeout('no reply (test: status reads lost)')
+        return real_poll(*args, **kwargs)
+    controller.drive.poll = poll
+    feeding = threading.Event()
+    feeding.set()
+
+    def feed():
+        while feeding.is_set():
+            controller.command_velocity(1.0)
+            time.sleep(0.005)
+    threading.Thread(target=feed, daemon=True).start()
+    controller.start()
+    try:
+        wait_for(lambda: not failing[0] or sim.run_requested, 5.0, 'the lost status reads')
+        assert not sim.run_requested and not any(run for run, _ in seen), \
+            'run written before any status was read'
+        wait_for(lambda: sim.run_requested, 5.0, 'running once the status is read')
+        for _, state in seen[1:]:
+            assert state.online and state.run_state is RunState.BLOCKED
+            assert state.stop_reason == STATUS_NOT_READ
+    finally:
+        feeding.clear()
+        controller.shutdown()
+        line.stop()
 
 
 def test_a_start_from_elsewhere_is_stopped_and_counted(make_harness):

@@ -43,6 +43,9 @@ from .watchdog import CommandWatchdog
 
 log = logging.getLogger(__name__)
 
+#: why a drive that just connected may not run yet (its ``stop_reason`` until then)
+STATUS_NOT_READ = 'no status read since the drive connected'
+
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
 LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
@@ -496,6 +499,9 @@ class DriveController:
             self._watchdog.reset()   # never resume from a command older than the link
         self._last_running = False
         self._check_comm_fault = True
+        # Online from here, but nothing is known of the drive's state until a status
+        # read succeeds (the first may fail): hold it idle, never report "no fault".
+        self._reading = Reading(unsafe=STATUS_NOT_READ)
         self.link.connected()
 
     def _reconnect_delay(self) -> float:
