@@ -487,7 +487,10 @@ def test_sm_watchdog_stops_the_drive_when_process_data_stops(start_segment, soem
                 'ready')
     slave.output = struct.pack('<Hh', 0x7F, 600)
     cycle_until(soem_master, lambda: segment.drive(0)['velocity_rpm'] > 20, 2.0, 'running')
-    stopped_at = time.monotonic()                             # no more process data
+    # The last process data now, timed right after it: the check above may take a while
+    # on a loaded machine, and the watchdog runs from the last frame, not from the check.
+    exchange(soem_master)
+    stopped_at = time.monotonic()
     esc = wait_for(lambda: (e := segment.esc(0))['al_status'] == SAFE_OP_ERROR and e, 2.0,
                    'SAFE-OP + error after the watchdog')
     assert esc['al_status_code'] == 0x001B and esc['watchdog_expired']
