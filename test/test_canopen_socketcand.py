@@ -18,6 +18,7 @@ import pytest
 
 from harness import wait_for
 from vfd_ros2.errors import ParameterError
+from vfd_ros2.sim.canopen_process import CanopenSimProcess
 from vfd_ros2.sim.socketcand_server import SocketcandServer, format_frame, parse_send
 from vfd_ros2.transports.canopen import CanChannel, CanopenTransport, parse_can_options
 
@@ -214,7 +215,7 @@ def test_a_client_that_disconnects_is_dropped_and_the_others_go_on(server):
 def test_a_drive_goes_online_and_runs_against_drives_in_another_process():
     """A controller (no ROS) on ``socketcand`` + ``can_options``; the sims are a process away."""
     from vfd_ros2.control.factory import build_controller
-    from vfd_ros2.sim.canopen_process import CanopenSimProcess
+
     with CanopenSimProcess(nodes=[1, 2], record=True) as sim:
         controller = build_controller({
             'drive.profile': 'cia402_velocity', 'transport.type': 'canopen',
@@ -240,3 +241,37 @@ def test_a_drive_goes_online_and_runs_against_drives_in_another_process():
     # what crossed the bridge, seen in the simulator's process: SDO both ways, the RPDO,
     # SYNC, the TPDO and the heartbeats of node 2 and of the host (node 127)
     assert {0x602, 0x582, 0x202, 0x080, 0x182, 0x702, 0x77F} <= cobs, sorted(map(hex, cobs))
+
+
+def test_vfd_scan_and_vfd_params_take_the_can_options(tmp_path):
+    """The tools reach drives a process away too, and the bus file keeps the options."""
+    import io
+
+    from vfd_ros2.apps import params, scan
+    from vfd_ros2.control.bus import load_bus_config
+
+    def run(tool, argv: list[str]) -> tuple[int, str]:
+        out, err = io.StringIO(), io.StringIO()
+        code = tool.run([str(a) for a in argv], stdout=out, stderr=err)
+        return code, out.getvalue() + err.getvalue()
+
+    with CanopenSimProcess(nodes=[1, 3]) as sim:
+        options = json.dumps(sim.can_options)
+        code, text = run(scan, ['--can', f'socketcand:{sim.bus}', '--can-options', options,
+                                '--listen', '0.5', '--sdo-probe', '--ids', '1-4',
+                                '--yaml', tmp_path / 'bus.yaml', '--quiet'])
+        assert code == 0, text
+        config = load_bus_config(str(tmp_path / 'bus.yaml'))
+        assert sorted(d.settings['transport.unit_id'] for d in config.drives) == [1, 3]
+        assert parse_can_options(config.settings['transport.can_options']) == sim.can_options
+        code, text = run(params, ['dump', '--can', f'socketcand:{sim.bus}', '--can-options',
+                                  options, '--unit', 3, '--profile', 'cia402_velocity',
+                                  '-o', tmp_path / 'node3.yaml'])
+        assert code == 0 and (tmp_path / 'node3.yaml').exists(), text
+    # bad options: refused with the setting's own message, before any bus is opened
+    code, text = run(scan, ['--can', 'socketcand:can0', '--can-options', '{"host": ',
+                            '--quiet'])
+    assert code == 2 and 'transport.can_options is not valid JSON' in text, text
+    code, text = run(params, ['dump', '--can', 'socketcand:can0', '--can-options', '[1]',
+                              '--profile', 'cia402_velocity', '-o', tmp_path / 'no.yaml'])
+    assert code != 0 and 'must be a JSON object' in text, text

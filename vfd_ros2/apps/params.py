@@ -181,7 +181,7 @@ def _link_values(args: argparse.Namespace, profile: str) -> dict[str, Any]:
         if not interface or not channel:
             raise Refused(f'bad CAN bus {args.can!r}: use INTERFACE:CHANNEL, e.g. socketcan:can0')
         values.update({'transport.type': 'canopen', 'transport.interface': interface,
-                       'transport.channel': channel})
+                       'transport.channel': channel, 'transport.can_options': args.can_options})
     if args.timeout:
         values['transport.timeout'] = args.timeout
     return values
@@ -436,6 +436,9 @@ def _parser() -> argparse.ArgumentParser:
     link.add_argument('--parity', default='', help='RTU: N, E or O')
     link.add_argument('--stopbits', type=int, default=0, help='RTU: 1 or 2')
     link.add_argument('--tcp-port', type=int, default=502)
+    link.add_argument('--can-options', default='', metavar='JSON',
+                      help='CANopen: extra can.Bus arguments as a JSON object, as '
+                      'transport.can_options (e.g. host and port for socketcand)')
     link.add_argument('--timeout', type=float, default=0.0, help='s per reply (0 = default)')
     link.add_argument('--node-timeout', type=float, default=10.0,
                       help='--node: s to wait for its status and each service reply')

@@ -160,6 +160,8 @@ class Found:
     port: int = 0
     identity: str = ''             # firmware values, 0x1000 / 0x1018
     notes: tuple[str, ...] = ()
+    # transport settings the link was opened with, for the bus file (e.g. CAN options)
+    link_settings: tuple[tuple[str, Any], ...] = ()
 
 
 @dataclass
@@ -442,7 +444,7 @@ def bus_documents(found: Sequence[Found]) -> list[tuple[str, dict[str, Any], lis
             interface, _, channel = link.partition(':')
             bus = {'name': f'can_{number}', 'transport.type': 'canopen',
                    'transport.interface': interface, 'transport.channel': channel,
-                   'control_rate': 100.0}
+                   **dict(members[0].link_settings), 'control_rate': 100.0}
         drives = {}
         for item in members:
             ident = item.identification
@@ -519,6 +521,10 @@ def _parser() -> argparse.ArgumentParser:
                         help='CANopen: also ask every id not heard by an SDO read of 0x1000')
     parser.add_argument('--can-bitrate', type=int, default=0,
                         help='CANopen: bit/s to open the interface with (0 = as configured)')
+    parser.add_argument('--can-options', default='', metavar='JSON',
+                        help='CANopen: extra can.Bus arguments as a JSON object, as '
+                        'transport.can_options, e.g. \'{"host": "10.0.0.5", "port": 29536}\' '
+                        'for socketcand')
     parser.add_argument('--yaml', type=Path, metavar='FILE',
                         help='write a bus_node configuration (one file per link)')
     parser.add_argument('--quiet', action='store_true', help='no progress on stderr')
@@ -558,7 +564,7 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
             from .scan_canopen import scan_canopen  # python-can only when asked for
             can_ids = parse_ids(args.ids or '1-127', 1, 127)
             part = scan_canopen(text, profiles, can_ids, budget, progress, args.listen,
-                                args.sdo_probe, args.can_bitrate)
+                                args.sdo_probe, args.can_bitrate, can_options=args.can_options)
             report.found += part.found
             report.skipped += part.skipped
     except (VfdError, ValueError) as exc:

@@ -7,7 +7,10 @@ not depend on how the driver's CANopen transport is built. It only listens and
 reads: no NMT command, no SDO download. The SDO reads are expedited uploads
 sent and matched here (``_Uploader``), not the library's ``SdoClient``: that
 client answers its own timeout with an SDO abort frame to the silent id and
-retries, which a scan of 127 ids must not put on a running bus.
+retries, which a scan of 127 ids must not put on a running bus. Only the text of
+``--can-options`` goes through the transport's ``parse_can_options`` (what the
+scan accepts, the bus file it writes must accept too), and the network is the
+transport's ``quick_closing_network``.
 
 1. Listen ``listen`` seconds on 0x701-0x77F: a boot-up (state 0) or a heartbeat
    (its NMT state) names a node.
@@ -24,12 +27,11 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from typing import Any, Sequence
-
-import canopen
+from typing import Any, Mapping, Sequence
 
 from ..drives.identify import Identification
 from ..profiles import Profile
+from ..transports.canopen import parse_can_options, quick_closing_network
 from .scan import Budget, Found, Progress, ScanError, ScanReport
 
 #: NMT state byte of a heartbeat -> name (CiA 301 7.2.8.3.2.3); 0 = boot-up
@@ -39,13 +41,12 @@ NMT_STATES = {0: 'boot-up', 4: 'stopped', 5: 'operational', 0x7F: 'pre-operation
 IDENTITY = {1: 'vendor', 2: 'product', 3: 'revision', 4: 'serial'}
 
 
-def _open(text: str, bitrate: int) -> tuple[Any, str]:
+def _open(text: str, bitrate: int, extra: Mapping[str, Any]) -> tuple[Any, str]:
     interface, _, channel = text.partition(':')
     if not interface or not channel:
         raise ScanError(f'bad CAN bus {text!r}: use INTERFACE:CHANNEL, e.g. socketcan:can0')
-    network = canopen.Network()
-    network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
-    options: dict[str, Any] = {'interface': interface, 'channel': channel}
+    network = quick_closing_network()
+    options: dict[str, Any] = {**extra, 'interface': interface, 'channel': channel}
     if bitrate:
         options['bitrate'] = bitrate
     try:
@@ -128,10 +129,17 @@ def _guess(profiles: Sequence[Profile], device_type: int | str,
 
 def scan_canopen(text: str, profiles: Sequence[Profile], ids: Sequence[int], budget: Budget,
                  progress: Progress, listen: float = 2.0, sdo_probe: bool = False,
-                 bitrate: int = 0, sdo_timeout: float = 0.1) -> ScanReport:
-    """Find the CANopen nodes on one bus (see the module docstring)."""
+                 bitrate: int = 0, sdo_timeout: float = 0.1,
+                 can_options: str = '') -> ScanReport:
+    """Find the CANopen nodes on one bus (see the module docstring).
+
+    ``can_options``: extra ``can.Bus`` arguments, a JSON object as in
+    ``transport.can_options`` (validated the same way; the bus file keeps them).
+    """
     report = ScanReport()
-    network, link = _open(text, bitrate)
+    network, link = _open(text, bitrate, parse_can_options(can_options))
+    link_settings = tuple((key, value) for key, value in (
+        ('transport.bitrate', bitrate), ('transport.can_options', can_options)) if value)
     heard: dict[int, str] = {}
     lock = threading.Lock()
 
@@ -176,6 +184,7 @@ def scan_canopen(text: str, profiles: Sequence[Profile], ids: Sequence[int], bud
             report.found.append(Found(
                 'canopen', link, node_id, identification,
                 identity=' '.join(p for p in (identification.evidence, shown) if p),
+                link_settings=link_settings,
                 notes=(f'NMT {state}' if state in NMT_STATES.values() else state,
                        *identification.notes)))
             progress(f'{link}: node {node_id}: {identification.profile or "unknown"} '

@@ -53,6 +53,7 @@ from ..transports.canopen import (
     add_objects,
     add_pdo_objects,
     od_variable,
+    quick_closing_network,
 )
 
 RPDO_TIMEOUT = 0x8250          # CiA 301 EMCY: RPDO timeout
@@ -611,8 +612,8 @@ class SimulatedCanBus:
 
     def start(self) -> 'SimulatedCanBus':
         import can
-        self.network = canopen.Network(can.Bus(interface=self.interface, channel=self.channel))
-        self.network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
+        self.network = quick_closing_network(can.Bus(interface=self.interface,
+                                                     channel=self.channel))
         self.network.connect()
         for drive in self.drives:
             drive.attach(self.network)
