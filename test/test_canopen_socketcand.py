@@ -9,6 +9,7 @@ process, through the server, with the transport's ``can_options``.
 from __future__ import annotations
 
 import json
+import logging
 import socket
 import time
 import uuid
@@ -234,6 +235,15 @@ def test_a_drive_goes_online_and_runs_against_drives_in_another_process():
             assert status['drives']['2']['state'] == 'OPERATION_ENABLED'
             assert status['drives']['1']['rpdos'] == 0       # only node 2 is driven
             assert status['clients'] == 1
+            # the client's warning for every partial TCP read is filtered, no other
+            client_log = logging.getLogger('can.interfaces.socketcand.socketcand')
+
+            def passes(text: str) -> bool:
+                return bool(client_log.filter(logging.LogRecord(
+                    client_log.name, logging.WARNING, __file__, 0, text, None, None)))
+            assert not passes('Got incomplete message => waiting for more data')
+            assert passes('Invalid Frame: < frame 123 >')
+            assert passes("Failed to connect to server: <class 'OSError'> Message: refused")
         finally:
             controller.shutdown()
         frames = sim.stop()

@@ -230,6 +230,21 @@ def parse_can_options(options: str | Mapping[str, Any] | None) -> dict[str, Any]
 
 # --- the channel: one bus, one Network, one host heartbeat --------------------------------
 
+class _PartialReadFilter(logging.Filter):
+    """Drop python-can socketcand's warning for a TCP read that ends inside a frame.
+
+    Ordinary on a stream (the client keeps the rest for the next read), it came for
+    most reads at a few thousand frames/s: a flood on bus_node's console, written
+    from the receive thread. The client's other warnings (a frame it cannot parse,
+    a refused connection) pass.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith('Got incomplete message')
+
+
+_PARTIAL_READS = _PartialReadFilter()
+
 _CHANNELS: dict[tuple[str, str, int, str], 'CanChannel'] = {}
 _CHANNELS_LOCK = threading.Lock()
 
@@ -299,6 +314,9 @@ class CanChannel:
             found = _CHANNELS.get(key)
             if found is None:
                 kwargs: dict[str, Any] = {**extra, 'interface': interface, 'channel': channel}
+                if interface == 'socketcand':
+                    logging.getLogger('can.interfaces.socketcand.socketcand').addFilter(
+                        _PARTIAL_READS)
                 if bitrate:
                     kwargs['bitrate'] = int(bitrate)
                 try:
