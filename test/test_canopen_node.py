@@ -283,7 +283,9 @@ def test_drive_stops_by_itself_when_the_driver_process_dies(make_can_harness):
     try:
         controller._loop._finish = lambda: None    # noqa: SLF001 - a killed process writes no stop
         controller.shutdown()
-        transport.channel.network.bus.shutdown()   # the OS closes its CAN socket (heartbeat too)
+        network = transport.channel.network        # the process's threads are gone, and
+        network.notifier.stop(1.0)                 # the OS closes its CAN socket (heartbeat too)
+        network.bus.shutdown()
         wait_for(lambda: sim.state is State.FAULT and sim.speed_rpm == 0.0, 3.0,
                  'the drive stops by itself')
         assert sim.fault_code in (0x8130, 0x8250)  # heartbeat event or RPDO timeout
