@@ -1,117 +1,89 @@
-"""CANopen cases: PDO cycle rate, missed cycles and command latency, drives in another process.
+"""CANopen cases: PDO cycle rate, missed cycles and command latency, each side its own process.
 
 Imports the CANopen transport and simulator at module level: if they are not
 there (or not importable), ``bench/run.py`` reports the section as skipped.
-The simulated drives and a frame recorder run in a process of their own
-(``vfd_ros2.sim.canopen_process``: a python-can ``virtual`` channel there, bridged
-to this process by a socketcand-protocol server on loopback TCP), so the driver
-here has its interpreter and GIL to itself, as it would with drives on a wire.
-The driver opens the bridge as python-can's ``socketcand`` interface with
-``transport.can_options``. The recorder stamps every frame on the monotonic clock,
-which this process shares: the moment the frame was put on the simulated bus
-(for a frame of the driver, once the bridge had read it from TCP) is compared
-with this process's publish times. The drive nodes share one CAN channel (one
-python-can handle, so one TCP connection, one ``canopen.Network``, one host
-heartbeat): each row records the handles the drivers held and the connections
-the bridge saw.
+Three processes, as on a robot with drives on a wire: the simulated drives and a
+frame recorder (``vfd_ros2.sim.canopen_process``: a python-can ``virtual`` channel
+there, bridged by a socketcand-protocol server on loopback TCP), the driver
+(bus_node, or the drive_nodes of the previous design in one process:
+``bench/drive_nodes.py``), which opens the bridge as python-can's ``socketcand``
+interface with ``transport.can_options``, and this process, which publishes the
+commands (a planner) and reads the recorder's frames at the end. The recorder
+stamps every frame on the monotonic clock, which all three share: the moment the
+frame was put on the simulated bus (for a frame of the driver, once the bridge had
+read it from TCP) is compared with this process's publish times, and every count
+(cycles, SYNCs, heartbeats) is taken from the frames.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import math
 import statistics
-import tempfile
-import threading
 import time
 import uuid
-from pathlib import Path
 from typing import Any
 
-import rclpy
-import yaml
-from rclpy.context import Context
-from rclpy.executors import Executor
-from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
-from vfd_ros2.ros.bus_node import BusNode
-from vfd_ros2.ros.drive_node import DriveNode
-from vfd_ros2.ros.executable import make_executor
 from vfd_ros2.sim.canopen_process import CanopenSimProcess
-from vfd_ros2.transports.canopen import open_channels
 
-from .cases import _percentile, wait_for
+from .cases import DriverProcesses, _percentile, _proc_cpu_seconds, bus_node_process, wait_for
+from .drive_nodes import SPEC_FILE
 
 PROFILE = 'cia402_velocity'
-
-# python-can's socketcand client warns for every TCP read that ends inside a frame
-# (ordinary on a stream: it keeps the rest for the next read); at 250 Hz x 4 drives
-# that is a steady flood on stderr, written from the driver's receive thread.
-logging.getLogger('can.interfaces.socketcand.socketcand').setLevel(logging.ERROR)
 
 
 def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
                design: str = 'bus', priority: int = 0) -> dict[str, Any]:
-    """``design``: 'bus' = one bus_node thread for the channel; 'nodes' = a drive_node each."""
+    """``design``: 'bus' = one bus_node thread for the channel; 'nodes' = a drive_node each.
+
+    The driver runs in a process of its own (bus_node, or the drive_nodes in one
+    process), as on a robot; this process only publishes the commands (a planner)
+    and reads the frames the simulator recorded: every count below is taken on the
+    simulated bus.
+    """
     # At normal priority, unlike the RTU simulator: answering ~3000 frames/s in Python it
     # takes most of a core, and at SCHED_FIFO it pre-empts the driver under test.
     sim = CanopenSimProcess(PROFILE, range(1, units + 1), record=True).start()
-    channel = sim.bus
-    context = Context()
-    rclpy.init(context=context)
     tag = f'co{uuid.uuid4().hex[:6]}'
-    nodes: list[Node] = []
-    tmp = tempfile.TemporaryDirectory()
+    driver = None
     try:
         drive_settings = {'drive.profile': PROFILE, 'gear_ratio': 10.0, 'auto_enable': True,
                           'status_rate': 20.0, 'command_timeout': 0.5}
         link = {'transport.type': 'canopen', 'transport.interface': 'socketcand',
-                'transport.channel': channel,
+                'transport.channel': sim.bus,
                 'transport.can_options': json.dumps(sim.can_options)}
         if design == 'bus':
-            path = Path(tmp.name) / 'bus.yaml'
-            path.write_text(yaml.safe_dump({
+            driver = bus_node_process({
                 'bus': {'name': 'can0', **link, 'control_rate': rate,
                         'realtime_priority': priority},
                 'drives': {f'd{n}': {'namespace': f'/{tag}/d{n}', 'transport.unit_id': n,
-                                     **drive_settings} for n in range(1, units + 1)}}))
-            bus_node = BusNode(context=context, namespace=f'/{tag}', parameter_overrides=[
-                Parameter('config_file', value=str(path))])
-            nodes.append(bus_node)          # it destroys its drive nodes itself
-            controllers = list(bus_node.bus.controllers.values())
-            loops = [bus_node.bus]
+                                     **drive_settings} for n in range(1, units + 1)}},
+                units, tag, command_rate=None)
         else:
-            for node_id in range(1, units + 1):
-                parameters = {**drive_settings, **link, 'transport.unit_id': node_id,
-                              'control_rate': rate, 'realtime_priority': priority}
-                nodes.append(DriveNode('drive', namespace=f'/{tag}/d{node_id}', context=context,
-                                       parameter_overrides=[Parameter(k, value=v)
-                                                            for k, v in parameters.items()]))
-            controllers = [node.controller for node in nodes]
-            loops = controllers
-        tester = Node('bench_can', namespace=f'/{tag}', context=context)
-        publishers = [tester.create_publisher(Float64, f'd{n}/drive/velocity_command', 10)
-                      for n in range(1, units + 1)]
-        executor = make_executor(context)
-        for node in [*nodes, *getattr(nodes[0], 'drive_nodes', []), tester]:
-            executor.add_node(node)
-        spin = threading.Thread(target=lambda: _spin(executor, context), daemon=True)
-        spin.start()
+            spec = [{'namespace': f'/{tag}/d{n}',
+                     'parameters': {**drive_settings, **link, 'transport.unit_id': n,
+                                    'control_rate': rate, 'realtime_priority': priority}}
+                    for n in range(1, units + 1)]
+            driver = DriverProcesses([('bench.drive_nodes', [])], units, tag,
+                                     command_rate=None, files={SPEC_FILE: spec})
+        publishers = driver.publishers
 
         def online() -> bool:
             for publisher in publishers:
                 publisher.publish(Float64(data=1.0))
-            return all(c.state.online and c.state.state == 'running' for c in controllers)
-        wait_for(online, 20.0, 'CANopen drives online and running')
+            driver.spin_for(0.05)
+            return len(driver.last) == units and all(
+                s.online and s.state == 'running' for s in driver.last.values())
+        wait_for(online, 30.0, 'CANopen drives online and running')
+        notes = sorted({note for status in driver.last.values()
+                        for note in getattr(status, 'link_notes', ())})
         # Stream commands at the cycle rate; for latency, alternate values on drive 1.
         sent: list[tuple[float, float]] = []
         period = 1.0 / rate
-        cycles0 = [c._cycle for c in controllers]             # noqa: SLF001
-        overruns0 = [loop._loop.overruns for loop in loops]   # noqa: SLF001
         start = next_time = time.monotonic()
+        cpu0 = _proc_cpu_seconds(driver.child.pid)
         index = 0
         while time.monotonic() - start < window:
             velocity = 1.0 + 0.5 * (index % 2)
@@ -124,25 +96,22 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
             next_time += period
             time.sleep(max(0.0, next_time - time.monotonic()))
         elapsed = time.monotonic() - start
-        mine = [c for c in open_channels() if c.key[:2] == ('socketcand', channel)]
-        handles = len(mine)
+        driver_cpu = 100.0 * (_proc_cpu_seconds(driver.child.pid) - cpu0) / elapsed
         bridge = sim.status()
-        heartbeat_period = max((c.heartbeat_period for c in mine), default=0.0)
-        cycles = [c._cycle - c0 for c, c0 in zip(controllers, cycles0)]           # noqa: SLF001
-        overruns = [loop._loop.overruns - o0 for loop, o0 in zip(loops, overruns0)]  # noqa
-        notes = sorted({note for c in controllers for note in c.loop_notes})
     finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown(context=context)
-        tmp.cleanup()
-        # the drivers' socketcand connections are closed above: python-can's client
-        # spins on a connection whose server has gone
+        # The driver's socketcand connection closes first: python-can's client spins on
+        # a connection whose server has gone.
+        if driver is not None:
+            driver.close()
         frames = sim.stop()
     expected = rate * elapsed
     # Every time is the frame's moment on the simulated bus (``sent``), on the
     # monotonic clock this process shares: not when the recorder thread got to it.
     begin, end = start, start + elapsed
+    # A cycle of a drive = its RPDO1 (the driver sends it every cycle, and a command
+    # waits for the cycle on a SYNC-driven bus)
+    cycles = [sum(1 for f in frames if f.cob_id == 0x200 + n and begin <= f.sent <= end)
+              for n in range(1, units + 1)]
     # Latency: the first RPDO1 of node 1 (COB-ID 0x201) after a publish whose payload
     # differs from the one before it (the commanded value alternates every command).
     rpdo = [(f.sent, f.data) for f in frames if f.cob_id == 0x201]
@@ -156,6 +125,8 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
     # what these frames would occupy on a real 1 Mbit/s bus (11-bit ids, worst-case stuffing)
     wire_bits = sum(_frame_bits(len(data)) for _, data in in_window)
     heartbeats = [f.sent for f in frames if f.cob_id == 0x77F]     # host node 127
+    heartbeat_period = statistics.median(b - a for a, b in zip(heartbeats, heartbeats[1:])) \
+        if len(heartbeats) > 1 else 0.0
     # the simulator process's own lag: bus moment -> its recorder thread
     lag = [1e3 * (f.received - f.sent) for f in frames if begin <= f.sent <= end]
     latencies = []
@@ -176,11 +147,12 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
         'drives': units, 'rate_hz': rate, 'seconds': round(elapsed, 2),
         'cycles_per_s': round(min(cycles) / elapsed, 1),
         'missed_cycles': max(0, round(expected - min(cycles))),
-        'overruns': max(overruns), 'rpdo_frames': len(rpdo), 'sync_frames': syncs,
+        'rpdo_frames': len(rpdo), 'sync_frames': syncs,
+        'driver_cpu_percent': round(driver_cpu, 1),
         'node1_late_rpdo_slots': late_slots,
         'frames_per_s': round(len(in_window) / elapsed, 1),
         'bus_load_percent_at_1mbit': round(100.0 * wire_bits / elapsed / 1e6, 1),
-        'can_handles': handles, 'bridge_connections': bridge['connections'],
+        'bridge_connections': bridge['connections'],
         'recorder_lag_p99_ms': round(_percentile(lag, 0.99), 3) if lag else None,
         'host_heartbeat_ms': round(heartbeat_period * 1000, 1),
         'host_heartbeat_frames': len(heartbeats),
@@ -194,16 +166,6 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
 def _frame_bits(data_bytes: int) -> int:
     """Bits of a classical CAN data frame with an 11-bit id, worst-case bit stuffing."""
     return 44 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4 + 3     # + interframe space
-
-
-def _spin(executor: Executor, context: Context) -> None:
-    while context.ok():
-        try:
-            executor.spin_once(timeout_sec=0.05)
-        except Exception:  # noqa: BLE001 - context shut down under us
-            if not context.ok():
-                return
-            raise
 
 
 #: (drives, Hz, design, realtime priority, full-run seconds): the previous design (a
@@ -227,16 +189,18 @@ def run(quick: bool) -> dict[str, Any]:
                          'realtime_priority': priority,
                          'error': f'{type(exc).__name__}: {exc}'})
     note = ('Target: 4 drives at 250 Hz with 0 missed cycles over 60 s. Missed = rate x '
-            'elapsed - cycles completed by the slowest drive; late slots = node 1 RPDO gaps '
+            'elapsed - cycles completed by the slowest drive (its RPDO1 frames on the '
+            'simulated bus: the driver sends one every cycle); late slots = node 1 RPDO gaps '
             'of more than 1.5 periods (jitter); bus load = the frames seen, on a 1 Mbit/s bus '
             'with worst-case bit stuffing; latency = publish -> first changed RPDO1 '
-            '(0x201) on the simulated bus. The simulated drives now run in their own process '
-            '(python-can virtual bus there) behind a socketcand-protocol bridge on loopback '
-            "TCP, which the driver opens as python-can's socketcand interface "
-            '(transport.can_options): the driver no longer shares its GIL with them, and '
-            'every frame crosses TCP (and the bridge) once, which the latency includes. '
-            'Connections = the TCP connections the bridge accepted: 1, unless drives went '
-            'offline (a heartbeat timeout) and the channel was opened again.')
+            '(0x201) on the simulated bus, which includes one crossing of loopback TCP and '
+            'the bridge. The driver (bus_node, or the previous design: a drive_node per '
+            'drive, in one process) has a process of its own, as on a robot; the bench '
+            'process only publishes the commands, and the simulated drives run in a third '
+            "(python-can virtual bus there), which the driver reaches as python-can's "
+            'socketcand interface (transport.can_options). Driver CPU = its process, % of '
+            'one core. Connections = the TCP connections the bridge accepted: 1, unless '
+            'drives went offline (a heartbeat timeout) and the channel was opened again.')
     if any(math.isnan(r.get('cycles_per_s', math.nan)) for r in rows if 'error' not in r):
         note += ' Some rows have no cycles.'
     return {'rows': rows, 'note': note}
