@@ -17,7 +17,12 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 
 from vfd_ros2.ros.drive_node import DriveNode
-from vfd_ros2.ros.executable import GIL_SWITCH_INTERVAL, make_executor, spin_until_shutdown
+from vfd_ros2.ros.executable import (
+    GIL_SWITCH_INTERVAL,
+    make_executor,
+    settle_heap,
+    spin_until_shutdown,
+)
 
 SPEC_FILE = 'drive_nodes.yaml'
 
@@ -33,6 +38,7 @@ def main() -> int:
             nodes.append(DriveNode('drive', namespace=item['namespace'], parameter_overrides=[
                 Parameter(key, value=value) for key, value in item['parameters'].items()]))
             executor.add_node(nodes[-1])
+        settle_heap()
         spin_until_shutdown(executor, nodes[0].context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import time
 import uuid
 from dataclasses import replace
@@ -123,3 +124,19 @@ def test_ctrl_c_on_the_sim_agv_stops_both_drives_on_the_bus(ros_context, tmp_pat
         assert f'unit {unit} at exit: run requested no' in logs['sim_drive'], logs['sim_drive']
     assert 'could not stop' not in logs['bus_node'], logs['bus_node']
     assert time.monotonic() - start_time < 120
+
+
+def test_the_start_up_heap_is_frozen_after_its_garbage_is_collected():
+    """settle_heap (run_node, after the nodes are built): later full collections skip it."""
+    code = """
+import gc, weakref
+from vfd_ros2.ros.executable import settle_heap
+class Node: pass
+kept = [[Node() for _ in range(100)] for _ in range(500)]     # start-up state
+garbage = Node(); garbage.cycle = garbage; probe = weakref.ref(garbage); del garbage
+settle_heap()
+print(probe() is None, gc.get_freeze_count() >= 500, len(gc.get_objects()) < 500)
+"""
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=60)
+    assert result.stdout.split() == ['True', 'True', 'True'], result.stdout + result.stderr

@@ -11,6 +11,7 @@ ever releasing the GIL, which starves the drives' control threads.
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 import threading
@@ -46,6 +47,7 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
         executor = make_executor()
         for each in (node, *extra_nodes(node)):
             executor.add_node(each)
+        settle_heap()
         spin_until_shutdown(executor, node.context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -61,6 +63,19 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def settle_heap() -> None:
+    """Take what start-up built out of every later garbage collection (``gc.freeze``).
+
+    A full collection holds the GIL for as long as it walks every container object:
+    a CANopen bus_node's ~62 000 (rclpy, the profiles, the python-can and canopen
+    modules) took 62 ms, 15 cycles of a 250 Hz bus, and one came unasked seconds
+    after start-up. Frozen, the same collection walks only what was made since
+    (0.0 ms measured). One collection first, so no garbage is kept for good.
+    """
+    gc.collect()
+    gc.freeze()
 
 
 #: seconds a thread may hold the GIL while another waits for it (Python's default: 0.005).
