@@ -216,7 +216,9 @@ def render_table(results: dict[str, Any]) -> str:
     meta = results.get('meta', {})
     parts.append(f"_{meta.get('mode', '')} run, {meta.get('date', '')}, "
                  f"{meta.get('cpus', '?')} CPUs, Python {meta.get('python', '')}, pymodbus "
-                 f"{meta.get('pymodbus', '')}, {meta.get('seconds', '?')} s_")
+                 f"{meta.get('pymodbus', '')}, {meta.get('seconds', '?')} s"
+                 + (f", host steal {meta['steal_percent']:g} % of the CPU time"
+                    if 'steal_percent' in meta else '') + '_')
     return '\n\n'.join(parts)
 
 
@@ -274,15 +276,15 @@ BOUNDS = """### Targets and what bounds them
   executor thread. The simulator's own share is measured now (`simulator late µs`: how
   late it handed over a reply's last byte; it runs at SCHED_FIFO, as it stands in for
   hardware, which took 50-100 µs off each turnaround); the GIL switch interval is 0.1 ms
-  since this run (0.5 ms here; the fleet case below gained ~3 points with it). What moves
+  (the fleet case below gained ~3 points with it in back-to-back runs). What moves
   the cycle rate further is fewer transactions, not a faster stack: the BONENG AM allows 5
   registers per read and no reads across undocumented addresses, so a cycle is 1 write +
   4-6 reads (`frames/drive-cycle`), and above 19200 baud the spec's fixed 1.75 ms t3.5 is
   ~2/3 of every transaction. Four AM drives on one 115200 line get ~8-9 full cycles/s each
   (`wire max`); 50 Hz needs one drive per line or slower status polling (`every:` in the
-  profile). The figures move with the machine: two later full runs on this VM while the
-  host took CPU time from it (steal) gave 68-84 % at 115200 with one drive, with the
-  simulator itself 170-480 µs late per reply.
+  profile). The figures move with the machine: on this VM the host takes CPU time from it
+  at times (steal, in the footer), and two full runs on 2026-11-23 during heavy steal gave
+  68-84 % at 115200 with one drive, the simulator itself 170-480 µs late per reply.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -310,22 +312,24 @@ BOUNDS = """### Targets and what bounds them
   what ships: one `bus_node` thread per CAN channel that writes every drive's RPDOs in one
   burst and then one SYNC (`transport.sync_producer`) where the drives take synchronous PDOs
   (`cia402_velocity`: transmission type 1; the Kinco stays event-driven), with and without
-  `realtime_priority` (SCHED_FIFO for that thread). Two changes since the last run: the
-  simulated drives and the frame recorder run in a process of their own
-  (`vfd_ros2/sim/canopen_process.py`), reached through a socketcand-protocol bridge on
-  loopback TCP that the driver opens as python-can's `socketcand` interface
-  (`transport.can_options`), so the driver no longer shares its GIL with them; and on a
-  SYNC-driven bus a new command waits for the next cycle's SYNC instead of preempting the
-  cycle with a burst and a SYNC of its own, which had doubled the frames when commands
-  stream at the cycle rate (`SYNCs` = cycles now; latency median ~1.3-2.9 ms, within one
-  4 ms period). The bus thread went from 602 missed cycles over 60 s (previous bench,
-  simulator in the driver's process) to 27-34. What is left is the machine: its 2 CPUs
-  carry the driver (~0.5 core: bus thread, CAN receive thread, executor, the bench's
-  command publisher in the same process), the simulator (most of a core: Python answering
-  ~3000 frames/s, hence left at normal priority: at SCHED_FIFO it pre-empted the driver and
-  missed more) and loopback TCP, and a cycle that wakes late by more than a period is
-  missed. 8 drives at 500 Hz: neither process keeps up here, and on a real 1 Mbit/s bus 8
-  drives x 3 frames x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
+  `realtime_priority` (SCHED_FIFO for that thread). On a SYNC-driven bus a new command
+  waits for the next cycle's SYNC (at most one period) instead of preempting the cycle, so
+  `SYNCs` = cycles. Since 2026-11-23 evening the driver has a process of its own, as on a
+  robot (the bench's command publisher shared its GIL before), cycles are counted from the
+  RPDOs on the simulated bus, and the executables freeze their start-up heap
+  (`ros/executable.py settle_heap`): a full garbage collection of a CANopen bus_node walked
+  ~62 000 objects for 62 ms, 15 cycles at 250 Hz, and one came unasked seconds after
+  start-up; frozen, 0.6 ms. The bus thread went from 602 missed cycles over 60 s (simulator
+  in the driver's process) to 27-34 (own process for the simulator), and to 4-6 in a
+  CANopen-only run on a quiet host (18:08, both priorities); this full run had host steal.
+  What is left is the machine: its 2 CPUs carry the driver (~0.4 core: bus thread, CAN
+  receive thread, executor taking 1000 commands/s), the simulator (most of a core: Python
+  answering ~3000 frames/s, hence left at normal priority: at SCHED_FIFO it pre-empted the
+  driver and missed more), the publisher and loopback TCP; a cycle that wakes more than a
+  period late is missed, and node 1's RPDO gaps come in clusters of a few hundred ms, as
+  when the whole VM is descheduled. 8 drives at 500 Hz: neither process keeps up here
+  (drives time out and reconnect: `connections`), and on a real 1 Mbit/s bus 8 drives x 3
+  frames x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
   met; half the previous design's.** The executables spin rclpy's `EventsExecutor`
   (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured side
@@ -344,16 +348,17 @@ BOUNDS = """### Targets and what bounds them
   any ROS work. What would move it further: fewer transactions per cycle (the profile's
   `every:` for slow values, a drive that allows longer reads), not a faster executor.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
-  core) — CPU met, the wire's limit just short: 87.2 % at normal priority, 89.9 % with the
-  bus's `realtime_priority: 50`.** Before the executor change one bus_node was CPU-bound at
-  101 % with 0.4 cycles/s per drive. What held it back, each fixed: the executor's wait
-  set (above); the GIL hand-over — a control thread woken by a reply waited up to Python's
-  5 ms switch interval while the executor ran callbacks (the executables set 0.5 ms in this
-  run, 0.1 ms since: +2.5 to +3.5 points in back-to-back fleet runs at both priorities,
-  same CPU); checks before every status read that scanned every drive (now nothing runs
-  unless a command waits or a watchdog may be due); and in the bench itself, the simulated
-  line advanced all 32 drive models after every frame and its process ran at normal
-  priority, which held replies back. What is left is the per-transaction turnaround
+  core) — CPU met, the wire's limit just short: 87-90 % over the full runs of 2026-11-23
+  (normal priority and the bus's `realtime_priority: 50`).** Before the executor change
+  one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
+  fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
+  reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
+  executables set 0.1 ms: +2.5 to +3.5 points over 0.5 ms in back-to-back fleet runs at
+  both priorities, same CPU; whole runs differ by more than that with the host's steal);
+  checks before every status read that scanned every drive (now nothing runs unless a
+  command waits or a watchdog may be due); and in the bench itself, the simulated line
+  advanced all 32 drive models after every frame and its process ran at normal priority,
+  which held replies back. What is left is the per-transaction turnaround
   (above): ~0.55 ms per ~5 ms transaction at 115200. Start-up to all online is bounded by
   design: a bus connects one offline drive per cycle, so every online drive stays
   addressed well within its comm-loss timeout (issue 9), and a cycle of n online drives
@@ -365,10 +370,10 @@ BOUNDS = """### Targets and what bounds them
   (counted as missed). Its own cost is small (~4 % of a core at 2 ms, ~6 % at 1 ms); what
   bounds it is wake-up latency on a 2-core machine shared with the simulated segment (a
   Python process answering every frame, 15-35 % of a core) and other work: p50 jitter is
-  ~0.1 ms, p99 0.4-1.4 ms, max 4-10 ms in this run. Lost frames are frames that did not
-  come back within the receive timeout (0.8 × the cycle) because the simulator was
-  descheduled. What would
-  move it: `transport.realtime_priority` style SCHED_FIFO for the process-data thread
-  (`SegmentSettings.realtime_priority`, `bench/ethercat_cycle.py --rt`), an isolated core,
-  and a real ESC (hardware answers in microseconds, not a Python process).
+  ~0.05 ms, p99 0.2-2.4 ms, max 1.5-15 ms in the run of 2026-11-23 evening. Lost frames
+  are frames that did not come back within the receive timeout (0.8 × the cycle) because
+  the simulator was descheduled. What would move it: `transport.realtime_priority` style
+  SCHED_FIFO for the process-data thread (`SegmentSettings.realtime_priority`,
+  `bench/ethercat_cycle.py --rt`), an isolated core, and a real ESC (hardware answers in
+  microseconds, not a Python process).
 """

@@ -164,6 +164,15 @@ def floor_profiles(cycles: int) -> dict[str, list[tuple[str, float, int]]]:
     return result
 
 
+def _steal_seconds() -> float | None:
+    """Return the CPU time stolen by the hypervisor since boot (/proc/stat), if known."""
+    try:
+        fields = Path('/proc/stat').read_text().split('\n', 1)[0].split()
+        return int(fields[8]) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--quick', action='store_true', help='a few seconds per case')
@@ -187,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     # Cases that run drive nodes in this process get the GIL hand-over the
     # executables use (vfd_ros2.ros.executable.run_node).
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    started = time.monotonic()
+    started, steal_before = time.monotonic(), _steal_seconds()
     results: dict[str, Any] = {
         'meta': {'date': datetime.datetime.now(datetime.timezone.utc).isoformat(
             timespec='seconds'), 'mode': 'quick' if args.quick else 'full',
@@ -219,6 +228,10 @@ def main(argv: list[str] | None = None) -> int:
         print('[bench] cProfile of the software floor ...', flush=True)
         results['floor_profile'] = floor_profiles(500)
     results['meta']['seconds'] = round(time.monotonic() - started, 1)
+    if steal_before is not None and (steal_after := _steal_seconds()) is not None:
+        # CPU time the hypervisor gave to others while the bench ran, % of all CPUs' time
+        results['meta']['steal_percent'] = round(100.0 * (steal_after - steal_before) / (
+            results['meta']['seconds'] * (os.cpu_count() or 1)), 2)
     table = render_table(results)
     print(table)
     output = Path(args.output)
