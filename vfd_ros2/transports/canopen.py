@@ -186,11 +186,11 @@ _OWN_ARGUMENTS = {'interface': 'transport.interface', 'channel': 'transport.chan
 def quick_closing_network(bus: Any = None) -> canopen.Network:
     """Return a ``canopen.Network`` whose ``disconnect`` joins its notifier thread.
 
-    The library waits for the notifier thread ``NOTIFIER_SHUTDOWN_TIMEOUT`` and then
-    closes the bus anyway; a thread still blocked in a receive as long as that
-    (``NOTIFIER_CYCLE``, 1 s by default, also 1 s here before) then reads a closed
-    socket and dies with an exception (python-can's socketcand client: EBADF). A
-    receive cycle well inside the wait leaves no thread behind, and closing stays quick.
+    The library waits ``NOTIFIER_SHUTDOWN_TIMEOUT`` for the notifier thread and then
+    closes the bus anyway; a thread still blocked in a receive that long (its
+    ``NOTIFIER_CYCLE``, 1 s by default: as long as the 1 s wait kept for quick closing)
+    then reads a closed socket and dies with an exception (python-can's socketcand
+    client: EBADF). A receive cycle well inside the wait leaves no thread behind.
     """
     network = canopen.Network(bus)
     network.NOTIFIER_CYCLE = 0.2
