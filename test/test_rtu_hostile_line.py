@@ -210,3 +210,26 @@ def test_low_latency_refused_by_a_real_serial_driver_is_reported():
     assert len(notes) == 1 and 'low-latency mode refused' in notes[0] and '16 ms' in notes[0]
     accepting = AcceptingPort()
     assert link._request_low_latency(accepting) == () and accepting.asked is True
+
+
+def test_the_master_keeps_t35_after_every_reply_on_a_timed_wire(tmp_path):
+    """The silence after a reply runs from its last byte; never shorter than t3.5 on the wire.
+
+    The simulated line times each byte at the baud rate and counts any request that
+    begins less than t3.5 after the previous reply ended (``gap_violations``).
+    """
+    drives = [distinct_drive(unit) for unit in (1, 2)]
+    line = SimulatedRtuLine([drive for drive, _ in drives], tmp_path / 'line',
+                            emulate_wire_time=True).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=0.1)
+    try:
+        transport.open()
+        for turn in range(100):
+            for unit, (_, blocks) in enumerate(drives, 1):
+                address, expected = blocks[turn % len(blocks)]
+                assert transport.read_registers(unit, address, len(expected)) == expected
+        assert line.stats.frames == 200
+        assert line.stats.gap_violations == 0
+    finally:
+        transport.close()
+        line.stop()

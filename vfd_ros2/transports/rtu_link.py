@@ -115,6 +115,7 @@ class RtuLink:
         self._serial: serial.Serial | None = None
         self._fd = -1
         self._quiet_from = 0.0     # monotonic time from which the line may be used again
+        self._last_byte_at = 0.0   # monotonic time the last byte of a frame was read
         self._hold: dict[int, float] = {}   # unit -> no request to it before (late replies)
         self._tuned_thread: int | None = None
 
@@ -318,8 +319,9 @@ class RtuLink:
                 chunk = os.read(fd, target - len(data))
                 if not chunk:
                     raise OSError('port closed')
+            self._last_byte_at = time.monotonic()
             if not data:
-                first_at = time.monotonic()
+                first_at = self._last_byte_at
             data += chunk
             size = size or self._frame_size(data)
             # The rest follows at the baud rate; allow bursty USB adapters a margin.
@@ -341,8 +343,13 @@ class RtuLink:
             return b''
 
     def _silence_after(self) -> bytes:
-        """Wait t3.5 after a frame; return what arrived instead of silence (drained)."""
-        if select.select([self._fd], [], [], self.gap)[0]:
+        """Wait t3.5 after a frame; return what arrived instead of silence (drained).
+
+        Counted from when its last byte was read, not from after decoding it: the
+        decoding overlaps the silence, as it would on the wire.
+        """
+        remaining = max(0.0, self._last_byte_at + self.gap - time.monotonic())
+        if select.select([self._fd], [], [], remaining)[0]:
             return self._drain()
         self._quiet_from = time.monotonic()
         return b''
