@@ -28,7 +28,7 @@ from std_msgs.msg import Float64
 
 from vfd_ros2.sim.canopen_process import CanopenSimProcess
 
-from .cases import DriverProcesses, _percentile, _proc_cpu_seconds, bus_node_process, wait_for
+from .cases import DriverProcess, _percentile, _proc_cpu_seconds, bus_node_process, wait_for
 from .drive_nodes import SPEC_FILE
 
 PROFILE = 'cia402_velocity'
@@ -66,8 +66,8 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
                      'parameters': {**drive_settings, **link, 'transport.unit_id': n,
                                     'control_rate': rate, 'realtime_priority': priority}}
                     for n in range(1, units + 1)]
-            driver = DriverProcesses([('bench.drive_nodes', [])], units, tag,
-                                     command_rate=None, files={SPEC_FILE: spec})
+            driver = DriverProcess('bench.drive_nodes', [], units, tag, command_rate=None,
+                                   files={SPEC_FILE: spec})
         publishers = driver.publishers
 
         def online() -> bool:
@@ -77,8 +77,6 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
             return len(driver.last) == units and all(
                 s.online and s.state == 'running' for s in driver.last.values())
         wait_for(online, 30.0, 'CANopen drives online and running')
-        notes = sorted({note for status in driver.last.values()
-                        for note in getattr(status, 'link_notes', ())})
         # Stream commands at the cycle rate; for latency, alternate values on drive 1.
         sent: list[tuple[float, float]] = []
         period = 1.0 / rate
@@ -143,7 +141,7 @@ def pdo_cycles(units: int, rate: float, window: float, commands: int = 0,
     return {
         'design': 'bus_node (one thread per channel)' if design == 'bus'
         else 'drive_node per drive (previous design)',
-        'realtime_priority': priority, 'loop_notes': notes,
+        'realtime_priority': priority,
         'drives': units, 'rate_hz': rate, 'seconds': round(elapsed, 2),
         'cycles_per_s': round(min(cycles) / elapsed, 1),
         'missed_cycles': max(0, round(expected - min(cycles))),

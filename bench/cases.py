@@ -563,18 +563,17 @@ def _thread_cpu(pid: int) -> dict[str, float]:
     return result
 
 
-class DriverProcesses:
-    """Driver nodes in child processes (as a robot runs them), fed and watched over ROS.
+class DriverProcess:
+    """The driver in a process of its own (as a robot runs it), fed and watched over ROS.
 
-    ``children``: one ROS executable per child, as (module with ``main``, ROS arguments);
-    ``files`` are YAML documents written first, by name, into a directory that the
-    arguments name as ``{dir}``. A tester node in this process has a velocity command
-    publisher per drive (``publishers``; with ``command_rate`` a timer publishes 1.0
-    rad/s on all of them, a planner) and keeps the last ``~/status`` of each drive.
-    ``child`` is the first child (bus_node: the only one).
+    ``module``: the executable's module (its ``main`` runs), with ``ros_arguments``;
+    ``files`` are YAML documents written first, by name, into its working directory,
+    which the arguments name as ``{dir}``. A tester node in this process has a velocity
+    command publisher per drive (``publishers``; with ``command_rate`` a timer publishes
+    1.0 rad/s on all of them, a planner) and keeps the last ``~/status`` of each drive.
     """
 
-    def __init__(self, children: list[tuple[str, list[str]]], units: int, tag: str,
+    def __init__(self, module: str, ros_arguments: list[str], units: int, tag: str,
                  command_rate: float | None = 50.0, executor: str = 'events',
                  files: dict[str, Any] | None = None) -> None:
         self._tmp = tempfile.TemporaryDirectory()
@@ -586,13 +585,11 @@ class DriverProcesses:
             p for p in (env.get('PYTHONPATH', ''), str(Path(__file__).resolve().parent.parent))
             if p)
         self.launched = time.monotonic()
-        self.children = [subprocess.Popen(
+        self.child = subprocess.Popen(
             [sys.executable, '-c', f'import sys; from {module} import main; sys.exit(main())',
              '--ros-args', *(a.replace('{dir}', self._tmp.name) for a in ros_arguments),
              '--log-level', 'warn'],
             stdout=subprocess.DEVNULL, stderr=self._log, env=env, cwd=self._tmp.name)
-            for module, ros_arguments in children]
-        self.child = self.children[0]
         self.units = units
         self.all_online_s: float | None = None
         self.context = Context()
@@ -633,7 +630,7 @@ class DriverProcesses:
             if len(self.last) == self.units and all(s.online and s.running
                                                     for s in self.last.values()):
                 return now
-            if time.monotonic() > deadline or any(c.poll() is not None for c in self.children):
+            if time.monotonic() > deadline or self.child.poll() is not None:
                 self._log.seek(0)
                 states = {u: (s.online, s.state) for u, s in self.last.items()}
                 raise RuntimeError(f'the driver did not bring the drives online: {states} '
@@ -646,13 +643,11 @@ class DriverProcesses:
         return sum(s.transactions for s in self.last.values())
 
     def close(self) -> None:
-        for child in self.children:
-            child.terminate()
-        for child in self.children:
-            try:
-                child.wait(10.0)
-            except subprocess.TimeoutExpired:
-                child.kill()
+        self.child.terminate()
+        try:
+            self.child.wait(10.0)
+        except subprocess.TimeoutExpired:
+            self.child.kill()
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
@@ -662,10 +657,10 @@ class DriverProcesses:
 
 def bus_node_process(document: dict[str, Any], units: int, tag: str,
                      command_rate: float | None = 50.0,
-                     executor: str = 'events') -> DriverProcesses:
+                     executor: str = 'events') -> DriverProcess:
     """bus_node in its own process with ``document`` as its bus file."""
-    return DriverProcesses([('vfd_ros2.ros.bus_node', ['-p', 'config_file:={dir}/bus.yaml'])],
-                           units, tag, command_rate, executor, files={'bus.yaml': document})
+    return DriverProcess('vfd_ros2.ros.bus_node', ['-p', 'config_file:={dir}/bus.yaml'], units,
+                         tag, command_rate, executor, files={'bus.yaml': document})
 
 
 def _bus_document(tag: str, profile_name: str, units: int, link: dict[str, Any],
@@ -677,7 +672,7 @@ def _bus_document(tag: str, profile_name: str, units: int, link: dict[str, Any],
     return {'bus': {'name': tag, **link, 'control_rate': control_rate}, 'drives': drives}
 
 
-def _cpu_window(bus: DriverProcesses, window: float,
+def _cpu_window(bus: DriverProcess, window: float,
                 profile_with_pyspy: bool = False) -> dict[str, Any]:
     """CPU %, per thread, RSS and transactions/s of the bus_node process over ``window``."""
     tx0 = bus.transactions()

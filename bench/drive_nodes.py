@@ -1,7 +1,7 @@
 """Several drive_nodes in one process, each with its own control thread.
 
 The bench's previous CANopen design (a robot would start them from one launch file).
-Run as a child by ``bench.cases.DriverProcesses``: reads ``drive_nodes.yaml`` (a list
+Run as a child by ``bench.cases.DriverProcess``: reads ``drive_nodes.yaml`` (a list
 of ``{namespace, parameters}``) from the working directory, spins every node in one
 executor until SIGTERM, then destroys them (each commands its drive to stop).
 """
