@@ -111,7 +111,9 @@ def test_heartbeat_loss_and_recovery(make_can_harness):
     status = wheel.wait_status(lambda s: s.online, 6.0, 'back online (same node process)')
     assert status.reconnects >= 1
     wheel.wait_status(lambda s: s.fault and s.fault_code == code, 3.0, "the drive's fault")
-    assert wheel.faults[-1].display == f'0x{code:04X}'      # a CiA code, written as one
+    # ~/fault follows ~/status from the same callback: it may arrive a moment later
+    wait_for(lambda: wheel.faults and wheel.faults[-1].display == f'0x{code:04X}', 3.0,
+             'the fault published as a CiA code')
     assert sim.state is State.FAULT                          # never resumes by itself
     assert wheel.trigger('reset_fault').success
     wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,
@@ -179,8 +181,9 @@ def test_fault_follows_the_statusword_not_the_error_code(make_can_harness):
     wheel.wait_status(lambda s: s.running, 6.0, 'running')
     sim.inject_fault(0x3210, latched=True)
     status = wheel.wait_status(lambda s: s.fault and s.fault_code == 0x3210, 3.0, 'fault')
-    assert wheel.faults[-1].display == '0x3210' and wheel.faults[-1].name == \
-        h.profile.faults.table[0x3210].name
+    published = wait_for(lambda: wheel.faults and wheel.faults[-1].display == '0x3210' and
+                         wheel.faults[-1], 3.0, 'the fault published')
+    assert published.name == h.profile.faults.table[0x3210].name
     assert not wheel.trigger('reset_fault').success      # the cause is still there
     sim.inject_fault(0)
     reply = wheel.trigger('reset_fault')
@@ -262,7 +265,8 @@ def test_consumer_heartbeat_set_and_the_drive_stops_when_the_host_heartbeat_stop
     assert (0x8130, 0x11, bytes(5)) in sim.emcy_sent      # EMCY: heartbeat event
     fault = wheel.wait_status(lambda s: s.fault and s.fault_code == 0x8130, 6.0, 'reported')
     assert fault.fault_code == 0x8130
-    assert wheel.faults[-1].display == '0x8130'
+    wait_for(lambda: wheel.faults and wheel.faults[-1].display == '0x8130', 3.0,
+             'the fault published')
     assert not wheel.status.running
     # The driver took the drive's NMT reaction (pre-operational) as a link loss and
     # reconnected, which restarts the heartbeat: a reset then brings the wheel back.
