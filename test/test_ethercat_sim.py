@@ -582,7 +582,8 @@ def test_distributed_clocks_and_sync0_check(start_segment, soem_master):
     soem_master.config_map()                                  # requests SAFE-OP
     assert soem_master.state_check(pysoem.SAFEOP_STATE, 200_000) != pysoem.SAFEOP_STATE
     soem_master.read_state()
-    assert first.state == pysoem.SAFEOP_STATE
+    assert first.state == pysoem.SAFEOP_STATE, \
+        (first.state, pysoem.al_status_code_to_string(first.al_status))
     assert (second.state, second.al_status) == (pysoem.PREOP_STATE | 0x10, 0x0030)
     # system time runs: the reference clock's time comes back in every cycle
     before = soem_master.dc_time
