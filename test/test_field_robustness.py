@@ -105,6 +105,24 @@ def test_a_single_fast_drive_keeps_the_timeout_it_asked_for():
     assert protection.timeout == pytest.approx(0.3) and protection.note == ''
 
 
+class CommandStream:
+    """A planner in a thread: every controller gets ``velocity`` each ``period`` until stop()."""
+
+    def __init__(self, controllers, velocity: float, period: float) -> None:
+        self._running = threading.Event()
+        self._running.set()
+
+        def feed():
+            while self._running.is_set():
+                for controller in controllers:
+                    controller.command_velocity(velocity)
+                time.sleep(period)
+        threading.Thread(target=feed, daemon=True).start()
+
+    def stop(self) -> None:
+        self._running.clear()
+
+
 def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
     """The issue's case: a ~0.6 s bus cycle and C02.04 = 0.3 s faulted every drive."""
     profile = shipped_profile('boneng_am')
@@ -112,15 +130,7 @@ def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
     port = str(tmp_path / 'line')
     line = SimulatedRtuLine(sims, port, baudrate=9600, emulate_wire_time=True).start()
     bus = am_bus(port, 4, 9600, auto_enable=True)
-    feeding = threading.Event()
-    feeding.set()
-
-    def feed():
-        while feeding.is_set():
-            for controller in bus.controllers.values():
-                controller.command_velocity(2.0)
-            time.sleep(0.05)
-    threading.Thread(target=feed, daemon=True).start()
+    commands = CommandStream(list(bus.controllers.values()), 2.0, 0.05)
     bus.start()
     try:
         wait_for(lambda: all(s.run_requested for s in sims), 15.0, 'all four running')
@@ -132,7 +142,7 @@ def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
             time.sleep(0.05)
         assert all(c.state.online and not c.state.fault for c in bus.controllers.values())
     finally:
-        feeding.clear()
+        commands.stop()
         bus.shutdown()
         line.stop()
 
@@ -145,14 +155,7 @@ def test_a_garbled_line_never_lets_the_drive_time_out(tmp_path):
     line = SimulatedRtuLine([sim], port, seed=4).start()
     controller = build_controller({'transport.port': port, 'auto_enable': True,
                                    'drive_comm_timeout': 0.3, 'reconnect_period': 0.5})
-    feeding = threading.Event()
-    feeding.set()
-
-    def feed():
-        while feeding.is_set():
-            controller.command_velocity(1.0)
-            time.sleep(0.05)
-    threading.Thread(target=feed, daemon=True).start()
+    commands = CommandStream([controller], 1.0, 0.05)
     controller.start()
     try:
         wait_for(lambda: sim.run_requested, 5.0, 'running')
@@ -165,7 +168,7 @@ def test_a_garbled_line_never_lets_the_drive_time_out(tmp_path):
         wait_for(lambda: controller.state.running, 5.0, 'running after the garbage')
         assert controller.loop_errors == 0
     finally:
-        feeding.clear()
+        commands.stop()
         controller.shutdown()
         line.stop()
 
@@ -235,14 +238,7 @@ def test_no_run_before_the_first_status_read_after_connect(tmp_path):
             raise CommTimeout('no reply (test: status reads lost)')
         return real_poll(*args, **kwargs)
     controller.drive.poll = poll
-    feeding = threading.Event()
-    feeding.set()
-
-    def feed():
-        while feeding.is_set():
-            controller.command_velocity(1.0)
-            time.sleep(0.005)
-    threading.Thread(target=feed, daemon=True).start()
+    commands = CommandStream([controller], 1.0, 0.005)
     controller.start()
     try:
         wait_for(lambda: sim.run_requested, 5.0, 'running once the status is read')
@@ -252,7 +248,7 @@ def test_no_run_before_the_first_status_read_after_connect(tmp_path):
             assert state.online and state.run_state is RunState.BLOCKED
             assert state.stop_reason == STATUS_NOT_READ
     finally:
-        feeding.clear()
+        commands.stop()
         controller.shutdown()
         line.stop()
 
