@@ -8,17 +8,30 @@ these do nothing.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
+import functools
 
 _PR_SET_NAME = 15
 _PR_SET_TIMERSLACK = 29
 
 
-def _prctl(option: int, argument: int | bytes) -> None:
+@functools.cache
+def _libc() -> ctypes.CDLL | None:
+    # The process's own symbols, not ctypes.util.find_library('c'): that runs
+    # ldconfig in a child process, and a fork while another thread holds a
+    # serial port open hands the child the port's exclusive lock until its exec
+    # (a reopen in that moment fails with "Could not exclusively lock port").
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6', use_errno=True)
-        libc.prctl(option, argument, 0, 0, 0)
-    except (OSError, AttributeError):
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def _prctl(option: int, argument: int | bytes) -> None:
+    libc = _libc()
+    try:
+        if libc is not None:
+            libc.prctl(option, argument, 0, 0, 0)
+    except AttributeError:          # no prctl: not Linux
         pass
 
 
