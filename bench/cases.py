@@ -434,8 +434,8 @@ def software_floor_node(profile_name: str, window: float, stack: str) -> dict[st
 
 
 def command_latency(profile_name: str, commands: int, kind: str,
-                    framing: Framing | None = None, rate: float | None = None,
-                    stack: str = 'vfd_ros2') -> dict[str, Any]:
+                    framing: Framing | None = None, rate: float | None = None
+                    ) -> dict[str, Any]:
     """Publish ~/velocity_command -> last byte of the setpoint write at the simulator."""
     profile = load_profile(profile_name)
     setpoint = profile.parameter(profile.velocity.setpoint)
@@ -457,17 +457,27 @@ def command_latency(profile_name: str, commands: int, kind: str,
         else:
             link = {'transport.type': 'modbus_tcp', 'transport.host': '127.0.0.1',
                     'transport.port': sim.where, 'transport.timeout': 0.5}
-        bus = NodeBus(profile_name, 1, link, control_rate=rate, stack=stack)
+        # The driver has a process of its own, as on a robot (the planner that publishes
+        # is another process): the bench's publishing loop does not share its GIL.
+        tag = f'lat{uuid.uuid4().hex[:6]}'
+        driver = bus_node_process(_bus_document(tag, profile_name, 1, link, rate), 1, tag,
+                                  command_rate=None)
         try:
-            bus.wait_online()
-            drive = bus.controllers[0].drive
-            # Distinct raw setpoints: each command is recognisable on the wire.
+            deadline = time.monotonic() + 30.0
+            while not (1 in driver.last and driver.last[1].running):
+                if time.monotonic() > deadline or driver.child.poll() is not None:
+                    driver.wait_all_running(0.0)        # raises with the driver's log
+                driver.publishers[0].publish(Float64(data=0.5))
+                driver.spin_for(0.05)
+            # Distinct raw setpoints: each command is recognisable on the wire. The
+            # driver's scaling is rebuilt here from the same settings.
+            reference = build_controller({'drive.profile': profile_name, 'gear_ratio': 10.0,
+                                          'transport.port': '/dev/null'})
             velocities, raws = [], []
             for step in range(2000):
                 velocity = 0.5 + 0.013 * step
-                raw = drive._native_setpoint(velocity)[0]     # noqa: SLF001
-                if (not raws or raw != raws[-1]) and velocity < bus.controllers[0] \
-                        .config.max_velocity:
+                raw = reference.drive._native_setpoint(velocity)[0]     # noqa: SLF001
+                if (not raws or raw != raws[-1]) and velocity < reference.config.max_velocity:
                     velocities.append(velocity)
                     raws.append(raw)
             period = 1.0 / rate
@@ -476,14 +486,14 @@ def command_latency(profile_name: str, commands: int, kind: str,
             for index in range(commands):
                 velocity = velocities[index % len(velocities)]
                 now = time.monotonic()
-                bus.publishers[0].publish(Float64(data=velocity))
+                driver.publishers[0].publish(Float64(data=velocity))
                 sent.append((now, raws[index % len(raws)]))
                 next_time += period
                 time.sleep(max(0.0, next_time - time.monotonic()))
             time.sleep(0.3)
             frames = sim.ask('received', start - 1.0)
         finally:
-            bus.close()
+            driver.close()
     writes = []
     for stamp, frame in frames:
         pdu = frame[7:] if kind == 'tcp' else frame[1:-2]
@@ -517,7 +527,7 @@ def command_latency(profile_name: str, commands: int, kind: str,
         bound = longest + setpoint_request_bytes(profile) * framing.char
     ms = [1e3 * x for x in latencies]
     return {
-        'transport': kind, 'profile': profile_name, 'stack': stack,
+        'transport': kind, 'profile': profile_name,
         'baudrate': framing.baudrate if framing else None,
         'command_rate_hz': rate, 'commands': commands, 'matched': len(ms),
         'superseded': superseded,

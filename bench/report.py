@@ -75,7 +75,8 @@ def render_table(results: dict[str, Any]) -> str:
                      _verdict(r['p99_ms'], r['target_p99_ms'], False)])
     if rows:
         parts.append('**3. Command latency** (publish `~/velocity_command` → last byte of the '
-                     'setpoint write at the simulator; commands at about the cycle rate the '
+                     'setpoint write at the simulator; the driver (bus_node, one drive) in a '
+                     'process of its own, as on a robot; commands at about the cycle rate the '
                      'wire allows; `written/sent`: a command replaced by the next before any '
                      "cycle picked it up is never written and not counted; target = the wire's "
                      'worst case + 1 ms: the longest status transaction of the cycle, which may '
