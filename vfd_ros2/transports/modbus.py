@@ -57,7 +57,7 @@ class _ModbusTransport(RegisterTransport):
     A subclass only implements ``_exchange``: put one request PDU on its link and
     return the reply PDU, raising CommTimeout / BadFrame / TransportError (and
     counting them with ``count``). Every reply is checked against its request as
-    far as the protocol allows: unit and function (by the link), byte count of a
+    far as the protocol allows: unit (by the link), function, byte count of a
     read, echoed address and value of a single write, address and count of a
     multiple write.
     """
@@ -74,6 +74,11 @@ class _ModbusTransport(RegisterTransport):
         self.count(unit, 'frames_sent')
         reply = self._exchange(what, request, reply_bytes)
         self.count(unit, 'frames_received')
+        if (reply.function_code & 0x7F) != request.function_code:
+            # pymodbus pairs a TCP reply by transaction id alone and decodes whatever
+            # function it names: a reply to another function is not this one's value.
+            raise self._mismatch(unit, what, f'the reply is to function '
+                                 f'{reply.function_code & 0x7F}, not {request.function_code}')
         if isinstance(reply, ExceptionResponse):
             self.count(unit, 'exceptions')
             code = reply.exception_code
