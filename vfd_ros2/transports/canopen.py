@@ -28,6 +28,7 @@ import json
 import logging
 import math
 import queue
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ from canopen.emcy import EmcyError
 from canopen.nmt import NMT_STATES
 
 from ..errors import (
+    BadFrame,
     CommTimeout,
     ParameterError,
     ProfileError,
@@ -56,6 +58,17 @@ PDO_DISABLED = 0x80000000
 SYNCHRONOUS_MAX = 240
 #: COB-ID of the SYNC object (CiA 301 default 0x1005 = 0x80)
 SYNC_COB_ID = 0x80
+#: the longest SDO upload the driver accepts (its values are 1..4 bytes; a
+#: segmented transfer brings at most 7 per segment)
+MAX_UPLOAD_BYTES = 8
+#: CiA 301 SDO abort codes: data type does not match, length of service parameter
+#: too high; client/server command specifier not valid or unknown
+SDO_ABORT_LENGTH_TOO_HIGH = 0x06070012
+SDO_ABORT_COMMAND_SPECIFIER = 0x05040001
+#: CiA 301 SDO command bytes: initiate download, expedited, size indicated (the two
+#: bits n = 4 - data bytes go in bits 2-3); the server's initiate download response
+SDO_EXPEDITED_DOWNLOAD = 0x23
+SDO_DOWNLOAD_CONFIRMED = 0x60
 #: NMT state byte of Operational in a heartbeat (CiA 301); the host reports it too
 NMT_OPERATIONAL = 0x05
 #: host heartbeat period bounds when derived from the control rate (s)
@@ -599,14 +612,54 @@ class CanopenTransport(Transport):
         """Expedited SDO upload of one typed value."""
         node = self._node(unit)
         what = f'read 0x{index:04X}:{subindex:02X}'
-        data = self._sdo(unit, what, lambda: node.sdo.upload(index, subindex))
+        data = self._sdo(unit, what, lambda: self._bounded_upload(node, index, subindex))
         size = value_type.bits // 8
         try:
             return _codec(index, subindex, value_type).decode_raw(bytes(data[:size]))
         except od.ObjectDictionaryError as exc:
             self.count(unit, 'bad_frames')
-            raise TransportError(f'{len(data)} bytes from node {unit} to {what} for a '
-                                 f'{value_type.value}') from exc
+            raise BadFrame(f'{len(data)} bytes from node {unit} to {what} for a '
+                           f'{value_type.value}') from exc
+
+    @staticmethod
+    def _bounded_upload(node: Any, index: int, subindex: int) -> bytes:
+        """Upload a value of at most 4 bytes: expedited, or a short segmented transfer.
+
+        The library's ``upload`` reads segments until the node says it is done: a
+        node that never does would hold the control thread (and with it every
+        stop) for ever. A value the driver reads fits one or two segments.
+        """
+        data = b''
+        with node.sdo.open(index, subindex, buffering=0) as stream:
+            while chunk := stream.read(7):
+                data += chunk
+                if len(data) > MAX_UPLOAD_BYTES:
+                    node.sdo.abort(SDO_ABORT_LENGTH_TOO_HIGH)
+                    raise canopen.SdoCommunicationError(
+                        f'the node sends more than {MAX_UPLOAD_BYTES} bytes')
+        return data
+
+    @staticmethod
+    def _expedited_download(node: Any, index: int, subindex: int, data: bytes) -> None:
+        """Write 1..4 bytes in one expedited download; the reply must confirm this object.
+
+        The library's ``download`` takes any download reply as the confirmation,
+        even one that names another object (CiA 301 7.2.4.3.3: it echoes the
+        multiplexer).
+        """
+        request = bytearray(8)
+        request[0] = SDO_EXPEDITED_DOWNLOAD | (4 - len(data)) << 2
+        struct.pack_into('<HB', request, 1, index, subindex)
+        request[4:4 + len(data)] = data
+        reply = node.sdo.request_response(request)
+        command, confirmed_index, confirmed_subindex = struct.unpack_from('<BHB', reply)
+        if command != SDO_DOWNLOAD_CONFIRMED:
+            node.sdo.abort(SDO_ABORT_COMMAND_SPECIFIER)
+            raise canopen.SdoCommunicationError(f'Unexpected response 0x{command:02X}')
+        if (confirmed_index, confirmed_subindex) != (index, subindex):
+            raise canopen.SdoCommunicationError(
+                f'the node confirmed a write of 0x{confirmed_index:04X}:'
+                f'{confirmed_subindex:02X}')
 
     def write_object(self, unit: int, index: int, subindex: int, value_type: ValueType,
                      raw: int) -> None:
@@ -617,7 +670,7 @@ class CanopenTransport(Transport):
         except ValueError as exc:
             raise ParameterError(f'raw value {raw} does not fit {value_type.value}') from exc
         self._sdo(unit, f'write 0x{index:04X}:{subindex:02X} = {raw}',
-                  lambda: node.sdo.download(index, subindex, data))
+                  lambda: self._expedited_download(node, index, subindex, bytes(data)))
 
     def _sdo(self, unit: int, what: str, call: Callable[[], Any]) -> Any:
         """Run SDO exchanges; aborts, silence and bus errors become the driver's errors."""
@@ -630,10 +683,14 @@ class CanopenTransport(Transport):
         except canopen.SdoCommunicationError as exc:
             # The library raises this one type for silence (raised while handling its
             # queue.Empty) and for an unexpected reply.
-            silent = isinstance(exc.__context__, queue.Empty)
-            self.count(unit, 'timeouts' if silent else 'bad_frames')
-            text = 'no SDO reply' if silent else 'unexpected SDO reply'
-            raise CommTimeout(f'{text} from node {unit} to {what}: {exc}') from exc
+            if isinstance(exc.__context__, queue.Empty):
+                self.count(unit, 'timeouts')
+                raise CommTimeout(f'no SDO reply from node {unit} to {what}: {exc}') from exc
+            self.count(unit, 'bad_frames')
+            raise BadFrame(f'unexpected SDO reply from node {unit} to {what}: {exc}') from exc
+        except struct.error as exc:      # the library unpacks a reply shorter than 8 bytes
+            self.count(unit, 'bad_frames')
+            raise BadFrame(f'a short SDO reply from node {unit} to {what}') from exc
         except (can.CanError, OSError, RuntimeError) as exc:
             self.count(unit, 'bad_frames')
             raise TransportError(f'{what} on node {unit} failed: {exc}') from exc
