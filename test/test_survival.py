@@ -43,8 +43,11 @@ def test_garbage_on_the_line_is_counted_and_commands_get_through(make_harness):
     h.line.corrupt_rate = 0.1              # bad CRCs, truncated frames, wrong slave ids
     h.stream(1.5)
     status = h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.5) < 0.03 and
-                           s.bad_frames + s.timeouts > 5, 10.0, 'moving through garbage')
-    assert status.transactions > 50
+                           s.bad_frames + s.timeouts > 5 and s.transactions > 50, 10.0,
+                           'moving through garbage')
+    # One reply in ten corrupted: the failed exchanges stay near that share (a master
+    # that lost sync after a bad frame would fail the next ones too).
+    assert (status.bad_frames + status.timeouts) / status.transactions < 0.3
     assert h.line.stats.corrupted_replies > 5
 
 
