@@ -219,6 +219,37 @@ def test_emcy_names_the_fault_when_the_code_object_is_empty(make_can_harness, pr
     wheel.wait_status(lambda s: not s.fault, 3.0, 'cleared')
 
 
+def test_a_flood_of_one_emcy_is_logged_once_and_kept_bounded(make_can_harness, caplog):
+    """A node that repeats an EMCY (a warning it sends on every event, or a babbling node).
+
+    The library appends every EMCY to its active list until an error reset: the
+    driver keeps that list short, logs the EMCY once and sums up the repeats.
+    """
+    h = make_can_harness()
+    wheel = h.wheels[1]
+    wheel.wait_status(lambda s: s.online, 5.0, 'online')
+    transport = wheel.node.controller.drive.transport
+    sender = can.Bus(interface='virtual', channel=h.channel)
+    caplog.set_level('INFO', logger='vfd_ros2.drives.canopen')
+    try:
+        for _ in range(2000):              # 0x4210: excess temperature (a warning here)
+            sender.send(can.Message(arbitration_id=0x81, data=bytes([0x10, 0x42, 0x08, 0, 0, 0,
+                                                                     0, 0]),
+                                    is_extended_id=False))
+        consumer = transport._links[1].node.emcy               # noqa: SLF001
+        wait_for(lambda: not consumer.log, 5.0, 'the EMCYs taken by the drive loop')
+        time.sleep(0.2)                    # a few more cycles
+        status = wheel.wait_status(lambda s: s.online, 2.0, 'still online')
+        assert not status.fault
+        assert len(consumer.active) <= 8
+        logged = [r for r in caplog.records if 'EMCY 0x4210' in r.getMessage()]
+        summed = [r for r in caplog.records if 'more EMCY frames' in r.getMessage()]
+        assert len(logged) == 1 and len(summed) == 1, [r.getMessage() for r in caplog.records]
+        assert int(summed[0].getMessage().split(': ')[1].split()[0]) <= 1999
+    finally:
+        sender.shutdown()
+
+
 def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
     """One producer per channel (two drive nodes here), 0x700 + 127, state 05, periodic."""
     h = make_can_harness(node_ids=(1, 2))

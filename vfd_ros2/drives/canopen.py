@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 from canopen.emcy import EmcyError
@@ -56,6 +57,10 @@ log = logging.getLogger(__name__)
 
 #: the CiA 301 generic error code, used when a drive reports FAULT without a code
 GENERIC_ERROR = 0x1000
+#: distinct EMCYs logged between two error resets; repeats are summed up instead,
+#: at most once per period (s)
+EMCY_LOGGED_MAX = 32
+EMCY_SUMMARY_PERIOD = 10.0
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
@@ -147,6 +152,9 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
+        self._emcy_logged: set[tuple[int, int, bytes]] = set()
+        self._emcy_repeats = 0             # EMCYs not logged since the last summary
+        self._emcy_summary_at = 0.0
 
     @property
     def state(self) -> State | None:
@@ -229,6 +237,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values.clear()
         self._last_controlword = None
         self._emcy_fault = NO_FAULT
+        self._emcy_logged.clear()
 
     def _write(self, obj: CanObject, raw: int) -> None:
         self.transport.write_object(self.unit_id, obj.index, obj.subindex, obj.type, raw)
@@ -447,11 +456,25 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         for emcy in new:
             if not emcy.code & 0xFF00:
                 log.info('%s EMCY error reset', self.hardware_id)
+                self._emcy_logged.clear()
                 continue
+            # Each distinct EMCY is logged once until the next error reset: a node that
+            # repeats one (or floods the bus) must not flood the log.
+            key = (emcy.code, emcy.register, bytes(emcy.data))
+            if key in self._emcy_logged or len(self._emcy_logged) >= EMCY_LOGGED_MAX:
+                self._emcy_repeats += 1
+                continue
+            self._emcy_logged.add(key)
             info = self._describe_emcy(emcy)
             log.warning('%s EMCY 0x%04X (%s) register 0x%02X data %s: %s %s', self.hardware_id,
                         emcy.code, emcy.get_desc(), emcy.register, emcy.data.hex(' '),
                         info.display, info.name)
+        if self._emcy_repeats:
+            now = time.monotonic()
+            if now >= self._emcy_summary_at:
+                log.warning('%s: %d more EMCY frames, already logged since the last error '
+                            'reset', self.hardware_id, self._emcy_repeats)
+                self._emcy_repeats, self._emcy_summary_at = 0, now + EMCY_SUMMARY_PERIOD
         self._emcy_fault = self._describe_emcy(active[-1]) if active else NO_FAULT
 
     def _reading(self) -> Reading:

@@ -58,6 +58,8 @@ PDO_DISABLED = 0x80000000
 SYNCHRONOUS_MAX = 240
 #: COB-ID of the SYNC object (CiA 301 default 0x1005 = 0x80)
 SYNC_COB_ID = 0x80
+#: the newest active EMCYs kept per node (the driver shows the last one)
+ACTIVE_EMCY_KEPT = 8
 #: the longest SDO upload the driver accepts (its values are 1..4 bytes; a
 #: segmented transfer brings at most 7 per segment)
 MAX_UPLOAD_BYTES = 8
@@ -800,6 +802,9 @@ class CanopenTransport(Transport):
         with consumer.emcy_received:
             new = list(consumer.log)
             consumer.log.clear()          # the library keeps every EMCY otherwise
+            # ...and appends every EMCY to ``active`` until an error reset (code 00xx):
+            # a drive that repeats a warning for hours would grow it without bound.
+            del consumer.active[:-ACTIVE_EMCY_KEPT]
             active = list(consumer.active)
         return new, active
 
