@@ -220,6 +220,10 @@ def render_table(results: dict[str, Any]) -> str:
                  f"{meta.get('pymodbus', '')}, {meta.get('seconds', '?')} s"
                  + (f", host steal {meta['steal_percent']:g} % of the CPU time"
                     if 'steal_percent' in meta else '') + '_')
+    for again in meta.get('remeasured', []):
+        parts[-1] += (f"\n\n_re-measured {again['date']}: {', '.join(again['sections'])}"
+                      + (f", host steal {again['steal_percent']:g} %"
+                         if again.get('steal_percent') is not None else '') + '_')
     return '\n\n'.join(parts)
 
 
@@ -306,8 +310,13 @@ BOUNDS = """### Targets and what bounds them
   table measures up to the setpoint request's last byte at the drive. The 1 ms on top is
   for DDS delivery, the executor and the driver's turnaround. (Until 2026-11-23 evening
   the target left out the setpoint request itself, 0.7 ms at 115200 and 4.2 ms at 19200:
-  the rows read NOT met by about that much.) Shorter status reads lower the worst case
-  (profile `every:` / `max_read_registers`); Modbus TCP has no such serialisation.
+  the rows read NOT met by about that much.) Since 2026-11-23 night the driver runs in a
+  process of its own (a bus_node), as on a robot; before, it shared the bench's process
+  and GIL with the publishing loop. The p99 sits at the target and moves with the host:
+  five runs of the 115200 row that evening gave 7.08-7.69 ms at 0.1-0.6 % host steal and
+  8.99 ms at 4 % (the in-process design, alternated with it: 6.69-7.48 ms). Shorter status
+  reads lower the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no
+  such serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — close, not met.** The table
   puts the previous design (a `drive_node` per drive, each with its own loop thread) next to
   what ships: one `bus_node` thread per CAN channel that writes every drive's RPDOs in one

@@ -182,6 +182,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--output', default=str(HERE / 'results' / 'latest.json'))
     parser.add_argument('--markdown', default=str(HERE / 'RESULTS.md'),
                         help="where to write the README's Performance text ('' = nowhere)")
+    parser.add_argument('--merge-into', default='',
+                        help='after a run of some sections (--only), put them into this '
+                             "earlier run's results, which record when they were re-measured; "
+                             '--output and --markdown then get the merged results')
     parser.add_argument('--render-only', action='store_true',
                         help='re-render the table and markdown from --output (no measuring)')
     args = parser.parse_args(argv)
@@ -232,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
         # CPU time the hypervisor gave to others while the bench ran, % of all CPUs' time
         results['meta']['steal_percent'] = round(100.0 * (steal_after - steal_before) / (
             results['meta']['seconds'] * (os.cpu_count() or 1)), 2)
+    if args.merge_into:
+        results = _merged(json.loads(Path(args.merge_into).read_text()), results)
     table = render_table(results)
     print(table)
     output = Path(args.output)
@@ -242,6 +248,18 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.markdown).write_text(render_markdown(results, table))
         print(f'[bench] wrote {args.markdown}')
     return 0
+
+
+def _merged(earlier: dict[str, Any], partial: dict[str, Any]) -> dict[str, Any]:
+    """``earlier`` with the sections ``partial`` measured, and a note saying when."""
+    sections = [key for key, rows in partial.items() if key != 'meta' and rows]
+    merged = {**earlier, **{key: partial[key] for key in sections}}
+    meta = dict(earlier.get('meta', {}))
+    meta['remeasured'] = [*meta.get('remeasured', []), {
+        'sections': sections, 'date': partial['meta']['date'],
+        'steal_percent': partial['meta'].get('steal_percent')}]
+    merged['meta'] = meta
+    return merged
 
 
 def _version(package: str) -> str:
