@@ -55,3 +55,24 @@ def test_table_renders_every_section_and_errors():
     table = render_table(results)
     assert 'error: RuntimeError: boom' in table
     assert 'CANopen**: skipped' in table
+
+
+def test_a_partial_run_merged_into_an_earlier_one_says_when(tmp_path):
+    earlier = tmp_path / 'earlier.json'
+    earlier.write_text(json.dumps({
+        'meta': {'mode': 'full', 'date': '2026-01-01T00:00:00+00:00'},
+        'software_floor': [{'case': 'old floor', 'error': 'RuntimeError: earlier'}],
+        'command_latency': [{'case': 'old latency', 'error': 'RuntimeError: earlier'}],
+    }))
+    output, markdown = tmp_path / 'latest.json', tmp_path / 'RESULTS.md'
+    assert run.main(['--quick', '--only', 'software_floor', '--case', 'floor vfd_ros2',
+                     '--merge-into', str(earlier), '--output', str(output),
+                     '--markdown', str(markdown)]) == 0
+    merged = json.loads(output.read_text())
+    assert merged['command_latency'] == [{'case': 'old latency',
+                                          'error': 'RuntimeError: earlier'}]
+    assert [row['stack'] for row in merged['software_floor']] == ['vfd_ros2']
+    assert merged['meta']['date'] == '2026-01-01T00:00:00+00:00'
+    [again] = merged['meta']['remeasured']
+    assert again['sections'] == ['software_floor']
+    assert f"re-measured {again['date']}: software_floor" in markdown.read_text()
