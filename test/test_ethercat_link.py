@@ -122,6 +122,31 @@ def test_sdo_while_cycling_expedited_segmented_and_aborts(start_segment, open_se
     assert link.stats().wkc_errors == 0                        # SDOs never disturbed the cycle
 
 
+def test_frames_lost_during_an_sdo_read_are_read_again_and_a_write_reports_it(
+        start_segment, open_segment):
+    """Frames lost for longer than SOEM resends them fail a mailbox exchange (WKC error).
+
+    On this link one SDO exchange gives up after ~30 ms without an answer. A read is
+    tried once more (reading twice changes nothing), so a 45 ms loss costs it
+    nothing; a write is not repeated by the link: its caller sees a CommTimeout and
+    decides.
+    """
+    sim = start_segment([BONENG_MH_EC])
+    link = open_segment()                                     # PRE-OP: no process data
+    boneng = link.slave(0)
+    sim.lose_frames(0.045)
+    assert boneng.sdo_read(0x1000, 0) == struct.pack('<I', 0x00010192)
+    sim.lose_frames(0.045)
+    with pytest.raises(CommTimeout, match='no mailbox answer to write 0x6060'):
+        boneng.sdo_write(0x6060, 0, b'\x02')
+    time.sleep(0.05)
+    sim.lose_frames(0.5)                                      # longer than both attempts
+    with pytest.raises(CommTimeout, match='no mailbox answer to read 0x1000'):
+        boneng.sdo_read(0x1000, 0)
+    time.sleep(0.5)
+    assert boneng.sdo_read(0x1000, 0) == struct.pack('<I', 0x00010192)
+
+
 def test_emergencies_are_surfaced(start_segment, open_segment):
     sim = start_segment([BONENG_MH_EC])
     received = []

@@ -64,6 +64,9 @@ log = logging.getLogger(__name__)
 
 #: how long an AL error flag must persist before a state request counts as refused
 ERROR_SETTLE_S = 0.02
+#: SDO uploads are tried this often when a frame is lost (WKC error): reading twice
+#: changes nothing. Downloads are not repeated; the caller decides.
+READ_ATTEMPTS = 2
 
 
 class SyncMode(enum.Enum):
@@ -227,7 +230,8 @@ class EthercatSlave:
         """SDO upload (expedited or segmented); ``size`` = room for objects > 256 bytes."""
         return self._segment._mailbox(self, 'read 0x%04X:%d' % (index, subindex), index,
                                       subindex, lambda: self._soem.sdo_read(index, subindex,
-                                                                            size))
+                                                                            size),
+                                      attempts=READ_ATTEMPTS)
 
     def sdo_write(self, index: int, subindex: int, data: bytes) -> None:
         """SDO download; more than the mailbox holds is sent segmented."""
@@ -717,10 +721,16 @@ class EthercatSegment:
                                     f'set: {exc}') from exc
 
     def _mailbox(self, slave: EthercatSlave, what: str, index: int, subindex: int,
-                 call: Callable[[], Any]) -> Any:
+                 call: Callable[[], Any], attempts: int = 1) -> Any:
         self._require_open()
         with self._mailbox_lock:
             try:
+                for attempt in range(attempts - 1):
+                    try:
+                        return call()
+                    except pysoem.WkcError as exc:    # a frame lost: an upload starts over
+                        log.info('slave %d: %s lost a frame (WKC %s), attempt %d of %d',
+                                 slave.position + 1, what, exc.wkc, attempt + 1, attempts)
                 return call()
             except pysoem.SdoError as exc:
                 raise SdoAbortError(slave.position, index, subindex, exc.abort_code) from exc

@@ -140,6 +140,7 @@ class SegmentServer:
         self.frames_in = 0
         self.frames_out = 0
         self.send_errors = 0
+        self.lose_until = 0.0        # frames until then are lost on the wire (never answered)
 
     def serve(self) -> None:
         self.sock.setblocking(False)
@@ -168,6 +169,8 @@ class SegmentServer:
             if address[2] == PACKET_OUTGOING:
                 continue
             self.frames_in += 1
+            if self.lose_until and time.monotonic() < self.lose_until:
+                continue
             start = time.monotonic_ns()
             reply = self.segment.process(frame, start)
             if reply is None:
@@ -199,6 +202,9 @@ class SegmentServer:
             return None
         if name in ('unplug', 'replug', 'power_cycle'):
             getattr(segment, name)(*args)
+            return None
+        if name == 'lose_frames':
+            self.lose_until = time.monotonic() + float(args[0])
             return None
         if name == 'link':
             segment.link_up = bool(args[0])
@@ -310,6 +316,10 @@ class SimulatedSegment:
 
     def power_cycle(self, position: int) -> None:
         self._request('power_cycle', position)
+
+    def lose_frames(self, seconds: float) -> None:
+        """Lose every frame the master sends for ``seconds`` (EMI, a loose connector)."""
+        self._request('lose_frames', seconds)
 
     def link_down(self) -> None:
         """Carrier off: the slaves' veth end goes down (the master sees no carrier)."""
