@@ -129,6 +129,7 @@ READ_CASES: dict[str, tuple[Misbehaviour, type[Exception] | None]] = {
     'undefined exception code': (lambda t, u, p, c: _mbap(t, u, bytes([0x83, 0x77])),
                                  ProtocolException),
     'the reply twice': (lambda t, u, p, c: _mbap(t, u, c) * 2, None),
+    'a babbling slave': (lambda t, u, p, c: os.urandom(20000), TransportError),
     'bytes after the reply': (lambda t, u, p, c: _mbap(t, u, c) + b'\x00\x01', None),
 }
 
