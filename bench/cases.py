@@ -439,6 +439,9 @@ def command_latency(profile_name: str, commands: int, kind: str,
     """Publish ~/velocity_command -> last byte of the setpoint write at the simulator."""
     profile = load_profile(profile_name)
     setpoint = profile.parameter(profile.velocity.setpoint)
+    # The driver's scaling and status reads, rebuilt here from the same settings.
+    reference = build_controller({'drive.profile': profile_name, 'gear_ratio': 10.0,
+                                  'transport.port': '/dev/null'})
     if kind == 'rtu' and framing is not None:
         cycle_rate = 1.0 / static_cycle_time(profile, framing)
         rate = rate or float(math.floor(0.9 * cycle_rate))
@@ -460,19 +463,12 @@ def command_latency(profile_name: str, commands: int, kind: str,
         # The driver has a process of its own, as on a robot (the planner that publishes
         # is another process): the bench's publishing loop does not share its GIL.
         tag = f'lat{uuid.uuid4().hex[:6]}'
-        driver = bus_node_process(_bus_document(tag, profile_name, 1, link, rate), 1, tag,
-                                  command_rate=None)
+        driver = bus_node_process(_bus_document(tag, profile_name, 1, link, rate), 1, tag)
         try:
-            deadline = time.monotonic() + 30.0
-            while not (1 in driver.last and driver.last[1].running):
-                if time.monotonic() > deadline or driver.child.poll() is not None:
-                    driver.wait_all_running(0.0)        # raises with the driver's log
-                driver.publishers[0].publish(Float64(data=0.5))
-                driver.spin_for(0.05)
-            # Distinct raw setpoints: each command is recognisable on the wire. The
-            # driver's scaling is rebuilt here from the same settings.
-            reference = build_controller({'drive.profile': profile_name, 'gear_ratio': 10.0,
-                                          'transport.port': '/dev/null'})
+            # Its planner timer feeds the start-up; from here on this process never
+            # spins, so the timer is silent and only the commands below are published.
+            driver.wait_all_running(30.0)
+            # Distinct raw setpoints: each command is recognisable on the wire.
             velocities, raws = [], []
             for step in range(2000):
                 velocity = 0.5 + 0.013 * step
@@ -520,10 +516,8 @@ def command_latency(profile_name: str, commands: int, kind: str,
         # The worst case the wire allows: the command arrives as the longest status read
         # starts (that transaction, with its two t3.5, runs to its end), then the setpoint
         # request goes out; the time ends at the request's last byte.
-        drive_blocks = build_controller({'drive.profile': profile_name,
-                                         'transport.port': '/dev/null'}).drive.blocks
         longest = max(transaction_time(8, reply_size(3, b.count), framing.char, framing.gap)
-                      for b in drive_blocks)
+                      for b in reference.drive.blocks)
         bound = longest + setpoint_request_bytes(profile) * framing.char
     ms = [1e3 * x for x in latencies]
     return {
