@@ -250,6 +250,47 @@ def test_a_flood_of_one_emcy_is_logged_once_and_kept_bounded(make_can_harness, c
         sender.shutdown()
 
 
+def test_malformed_frames_are_counted_and_logged_once_per_cob_id(make_can_harness, caplog):
+    """A node sending frames too short for their object (a broken or babbling node).
+
+    The library raises on each (EMCY, heartbeat) and logs its exception text at
+    ERROR, naming neither frame nor node: a flood. The driver logs the first of
+    each COB-ID with its bytes, sums up the repeats, counts them as the node's bad
+    frames, and the drive stays online.
+    """
+    h = make_can_harness()
+    wheel = h.wheels[1]
+    wheel.wait_status(lambda s: s.online, 5.0, 'online')
+    channel = wheel.node.controller.drive.transport.channel
+    channel.network.malformed.SUMMARY_PERIOD = 0.5
+    caplog.set_level('WARNING')
+    sender = can.Bus(interface='virtual', channel=h.channel)
+
+    def send(count: int) -> None:
+        for _ in range(count):
+            for cob_id, data in ((0x81, b'\x10\x42'), (0x701, b'')):   # EMCY 2 of 8 bytes
+                sender.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+    try:
+        send(200)
+        status = wheel.wait_status(lambda s: s.bad_frames >= 400, 5.0, 'bad frames counted')
+        assert status.online and not status.fault, status
+        time.sleep(0.6)
+        send(10)                # after the summary period: the repeats are summed up
+        wheel.wait_status(lambda s: s.bad_frames >= 420, 5.0, 'more bad frames counted')
+        ours = [r.getMessage() for r in caplog.records if channel.description in r.getMessage()]
+        firsts = [m for m in ours if 'malformed frame 0x' in m]
+        assert len(firsts) == 2, ours
+        assert any('0x081 [2] 10 42 from node 1' in m for m in firsts), firsts
+        assert any('0x701 [0] - from node 1' in m for m in firsts), firsts
+        summaries = [m for m in ours if 'more malformed frames' in m]
+        assert len(summaries) == 1 and int(summaries[0].split(': ')[1].split()[0]) >= 398, ours
+        assert not [r for r in caplog.records if r.name == 'canopen.network'], \
+            'the library logged the frames itself'
+        assert wheel.wait_status(lambda s: s.online, 2.0, 'still online').reconnects == 0
+    finally:
+        sender.shutdown()
+
+
 def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
     """One producer per channel (two drive nodes here), 0x700 + 127, state 05, periodic."""
     h = make_can_harness(node_ids=(1, 2))

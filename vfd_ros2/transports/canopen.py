@@ -198,8 +198,73 @@ _OWN_ARGUMENTS = {'interface': 'transport.interface', 'channel': 'transport.chan
                   'bitrate': 'transport.bitrate'}
 
 
-def quick_closing_network(bus: Any = None) -> canopen.Network:
-    """Return a ``canopen.Network`` whose ``disconnect`` joins its notifier thread.
+class MalformedFrames:
+    """Frames the library could not take (an EMCY or heartbeat too short, ...), by node.
+
+    The library's receive path logs every such frame at ERROR with its exception
+    text only ("unpack requires a buffer of 8 bytes"), naming neither the frame
+    nor the node: a babbling node floods the console. Here the first frame of
+    each COB-ID is logged with its bytes, repeats are summed up at most every
+    ``SUMMARY_PERIOD`` s, and each node's count reaches its transport's
+    ``bad_frames`` (``take``).
+    """
+
+    SUMMARY_PERIOD = 10.0
+
+    def __init__(self, label: str = 'CAN') -> None:
+        self.label = label          # the channel, in log lines
+        self._lock = threading.Lock()
+        self._seen: set[int] = set()
+        self._untaken: dict[int, int] = {}       # node id -> frames not yet counted
+        self._repeats = 0
+        self._summary_due = 0.0
+
+    def record(self, can_id: int, data: bytes, exc: Exception) -> None:
+        """Count one frame the library raised on (its notifier thread)."""
+        now = time.monotonic()
+        with self._lock:
+            node = can_id & 0x7F
+            self._untaken[node] = self._untaken.get(node, 0) + 1
+            first = can_id not in self._seen
+            if first:
+                self._seen.add(can_id)
+                self._summary_due = max(self._summary_due, now + self.SUMMARY_PERIOD)
+            else:
+                self._repeats += 1
+            summary = 0
+            if self._repeats and now >= self._summary_due:
+                summary, self._repeats = self._repeats, 0
+                self._summary_due = now + self.SUMMARY_PERIOD
+        if first:
+            log.warning('%s: malformed frame 0x%03X [%d] %s from node %d ignored (%s); '
+                        'repeats are summed up every %g s', self.label, can_id,
+                        len(data), bytes(data).hex(' ') or '-', node, exc,
+                        self.SUMMARY_PERIOD)
+        if summary:
+            log.warning('%s: %d more malformed frames ignored', self.label, summary)
+
+    def take(self, node: int) -> int:
+        """Return how many frames of ``node`` were malformed since the last call."""
+        with self._lock:
+            return self._untaken.pop(node, 0)
+
+
+class GuardedNetwork(canopen.Network):
+    """``canopen.Network`` that hands a frame the library raises on to ``malformed``."""
+
+    def __init__(self, bus: Any = None) -> None:
+        super().__init__(bus)
+        self.malformed = MalformedFrames()
+
+    def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        try:
+            super().notify(can_id, data, timestamp)
+        except Exception as exc:  # noqa: BLE001 - whatever a callback raises on bad bytes
+            self.malformed.record(can_id, bytes(data), exc)
+
+
+def quick_closing_network(bus: Any = None) -> GuardedNetwork:
+    """Return a ``GuardedNetwork`` whose ``disconnect`` joins its notifier thread.
 
     The library waits ``NOTIFIER_SHUTDOWN_TIMEOUT`` for the notifier thread and then
     closes the bus anyway; a thread still blocked in a receive that long (its
@@ -207,7 +272,7 @@ def quick_closing_network(bus: Any = None) -> canopen.Network:
     then reads a closed socket and dies with an exception (python-can's socketcand
     client: EBADF). A receive cycle well inside the wait leaves no thread behind.
     """
-    network = canopen.Network(bus)
+    network = GuardedNetwork(bus)
     network.NOTIFIER_CYCLE = 0.2
     network.NOTIFIER_SHUTDOWN_TIMEOUT = 1.0
     return network
@@ -281,6 +346,8 @@ class CanChannel:
     def __init__(self, key: tuple[str, str, int, str], network: canopen.Network) -> None:
         self.key = key
         self.network = network
+        if isinstance(network, GuardedNetwork):
+            network.malformed.label = self.description
         self.users = 0
         self.lock = threading.Lock()
         self.host_node_id: int | None = None
@@ -840,6 +907,10 @@ class CanopenTransport(Transport):
         was sent).
         """
         link = self._link(unit)
+        if self.channel is not None:
+            malformed = self.channel.network.malformed.take(unit)
+            if malformed:
+                self.count(unit, 'bad_frames', malformed)
         with self._lock:
             timeout, last, booted = link.supervise_timeout, link.last_heartbeat, link.booted
             since, state = link.supervise_from, link.nmt_state
