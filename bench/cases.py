@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import tty
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +24,9 @@ from typing import Any, Callable
 
 import rclpy
 import yaml
+from pymodbus.framer.rtu import FramerRTU
+from pymodbus.pdu import DecodePDU
+from pymodbus.pdu.register_message import ReadHoldingRegistersRequest, WriteSingleRegisterRequest
 from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -734,6 +739,67 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
         'target_percent_per_drive': 3.0 if units > 1 else 5.0,
     })
     return result
+
+
+def io_floor(profile_name: str, units: int, window: float,
+             control_rate: float = 50.0) -> dict[str, Any]:
+    """Measure the I/O of ``cpu_usage`` without the driver: the floor of any driver.
+
+    The same request frames (each drive's setpoint write and the status reads due
+    that cycle, from the profile's read plan, built by pymodbus) go to the same
+    simulator, each reply is read by its known length with ``select``/``read`` and
+    not decoded, and the cycles are paced at ``control_rate`` as the control loop
+    paces them. What this thread costs is the pty's system calls and the scheduler's
+    wake-ups at that pace; the rest of ``cpu_usage``'s figure is the driver's logic
+    and ROS.
+    """
+    port = _port_path('iofloor')
+    drive = build_controller({'drive.profile': profile_name,
+                              'transport.port': '/dev/null'}).drive
+    framer = FramerRTU(DecodePDU(False))
+    setpoint = drive.profile.parameter(drive.profile.velocity.setpoint).address
+    cycles: list[list[tuple[bytes, int]]] = []     # per cycle index: (frame, reply bytes)
+    period_cycles = math.lcm(*(drive._block_every[b] for b in drive.blocks))  # noqa: SLF001
+    for index in range(period_cycles):
+        frames = []
+        for unit in range(1, units + 1):
+            frames.append((framer.buildFrame(WriteSingleRegisterRequest(
+                address=setpoint, registers=[100], dev_id=unit)), reply_size(6)))
+            frames += [(framer.buildFrame(ReadHoldingRegistersRequest(
+                address=b.start, count=b.count, dev_id=unit)), reply_size(3, b.count))
+                for b in drive.blocks
+                if index % drive._block_every[b] == 0]       # noqa: SLF001
+        cycles.append(frames)
+    done = 0
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
+        wait_port(port)
+        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            tty.setraw(fd)
+            period, cycle = 1.0 / control_rate, 0
+            cpu0, start = time.thread_time(), time.monotonic()
+            while time.monotonic() < start + window:
+                for frame, expected in cycles[cycle % period_cycles]:
+                    os.write(fd, frame)
+                    reply = b''
+                    while len(reply) < expected:
+                        if not select.select([fd], [], [], 0.5)[0]:
+                            raise RuntimeError(f'no reply to {frame.hex()}')
+                        reply += os.read(fd, expected - len(reply))
+                    done += 1
+                cycle += 1
+                time.sleep(max(0.0, start + cycle * period - time.monotonic()))
+            cpu, elapsed = time.thread_time() - cpu0, time.monotonic() - start
+        finally:
+            os.close(fd)
+    cpu_percent = 100.0 * cpu / elapsed
+    return {'profile': profile_name, 'drives': units, 'executor': 'io_floor',
+            'control_rate_hz': control_rate, 'cpu_percent': round(cpu_percent, 2),
+            'cpu_percent_by_thread': {'control loop': round(cpu_percent, 2)},
+            'transactions_per_s': round(done / elapsed, 1), 'rss_mb': None,
+            'cpu_percent_per_drive': round(cpu_percent / units, 2),
+            'approx_cycles_per_s': round(cycle / elapsed, 1),
+            'target_percent_per_drive': 3.0 if units > 1 else 5.0}
 
 
 def fleet(profile_name: str, units: int, framing: Framing, window: float,

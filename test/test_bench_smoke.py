@@ -76,3 +76,15 @@ def test_a_partial_run_merged_into_an_earlier_one_says_when(tmp_path):
     [again] = merged['meta']['remeasured']
     assert again['sections'] == ['software_floor']
     assert f"re-measured {again['date']}: software_floor" in markdown.read_text()
+
+
+def test_the_io_floor_sends_the_drives_cycles_at_their_pace():
+    """The I/O alone: each drive's setpoint write and due reads, 50 cycles/s, all answered."""
+    from bench import cases
+    row = cases.io_floor('boneng_am', 2, 1.0, control_rate=50.0)
+    assert 40 <= row['approx_cycles_per_s'] <= 51, row
+    # 2 drives x (1 write + 4 reads, +2 slow reads every 5th cycle) = 10.8 per cycle
+    per_cycle = row['transactions_per_s'] / row['approx_cycles_per_s']
+    assert abs(per_cycle - 10.8) < 0.5, row
+    assert 0 < row['cpu_percent'] < 100, row
+    assert 'the same I/O alone, no driver' in render_table({'cpu': [dict(row, case='x')]})
