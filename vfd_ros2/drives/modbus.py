@@ -22,6 +22,7 @@ from ..profiles import (
 from ..protocol.registers import ReadBlock, decode_words, encode_words, plan_reads
 from ..protocol.rtu_timing import reply_size
 from ..protocol.scaling import VelocityScaling
+from ..protocol.values import ValueType
 from ..transports.base import RegisterTransport, TransportParameter
 from .base import (
     ACTION_TRANSACTIONS,
@@ -67,9 +68,19 @@ class ModbusDrive(DriveOnLink):
         self._command = profile.parameter(profile.control.command)
         self._signals: list[tuple[Signal, Parameter]] = [
             (signal, profile.parameter(signal.code)) for signal in profile.monitor]
-        self._signal_spans = [
-            (signal, parameter, tuple(range(parameter.address,
-                                            parameter.address + parameter.register_count)))
+        # How poll decodes each value, worked out once: it runs for every value of
+        # every drive each cycle. (role, code, span, first register, sign bit of a
+        # one-register value (0: unsigned; None: two registers, decode_words), bit
+        # field (shift, mask) or None, scale, parameter)
+        self._decoding = [
+            (signal.role, parameter.code,
+             tuple(range(parameter.address, parameter.address + parameter.register_count)),
+             parameter.address,
+             None if parameter.register_count != 1 else
+             0x8000 if parameter.type is ValueType.INT16 else 0,
+             None if signal.bits is None else
+             (signal.bits[0], (1 << (signal.bits[1] - signal.bits[0] + 1)) - 1),
+             parameter.scale, parameter)
             for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
@@ -107,6 +118,7 @@ class ModbusDrive(DriveOnLink):
             block: min((s.every for s, p in self._signals if block.covers(p.address)),
                        default=1)
             for block in self.blocks}
+        self._schedule = [(block, self._block_every[block]) for block in self.blocks]
 
     # --- link ---------------------------------------------------------------
 
@@ -329,42 +341,49 @@ class ModbusDrive(DriveOnLink):
         ``preempt()`` runs before each read, so a command that arrived meanwhile
         goes on the wire ahead of the remaining status reads.
         """
-        for block in list(self.blocks):
+        known = self._words
+        for block, every in self._schedule:      # (_refuse plans anew: a new list)
+            if cycle % every and block.start in known:
+                continue
             if preempt is not None:
                 preempt()
-            if cycle % self._block_every[block] == 0 or block.start not in self._words:
-                try:
-                    words = self._read(block.start, block.count)
-                except ProtocolException as exc:
-                    self._refuse(block, exc)
-                    continue
-                for offset, word in enumerate(words):
-                    self._words[block.start + offset] = word
+            try:
+                words = self._read(block.start, block.count)
+            except ProtocolException as exc:
+                self._refuse(block, exc)
+                continue
+            known.update(zip(range(block.start, block.start + len(words)), words))
         reading = Reading()
-        known, refusals = self._words, self._refused
-        for signal, parameter, span in self._signal_spans:   # every cycle: kept lean
+        refusals, values = self._refused, reading.values
+        for role, code, span, first, sign, bits, scale, parameter in self._decoding:
             if refusals:
                 refused = next((refusals[a] for a in span if a in refusals), None)
                 if refused is not None:
-                    reading.unavailable[signal.role] = f'{parameter.code}: {refused}'
+                    reading.unavailable[role] = f'{code}: {refused}'
                     continue
-            words = [known.get(address) for address in span]
-            if None in words:
-                continue
-            raw = signal.extract(decode_words(parameter, words))
-            reading.values[signal.role] = raw if signal.bits else parameter.from_raw(raw)
-        vital = sorted(self._vital_roles & set(reading.unavailable))
+            if sign is not None:                  # one register
+                raw = known.get(first)
+                if raw is None:
+                    continue
+                if raw & sign:
+                    raw -= 0x10000
+            else:
+                words = [known.get(address) for address in span]
+                if None in words:
+                    continue
+                raw = decode_words(parameter, words)
+            values[role] = raw * scale if bits is None else (raw >> bits[0]) & bits[1]
+        vital = reading.unavailable and sorted(self._vital_roles & set(reading.unavailable))
         if vital:
             reading.unsafe = ('the drive refuses ' + '; '.join(
                 reading.unavailable[role] for role in vital) + ': its run or fault state '
                 'is unknown, so it is not run')
         for parameter in self._status_words:
-            if parameter.address in self._words:
-                reading.raw_words[parameter.code] = self._words[parameter.address]
+            if parameter.address in known:
+                reading.raw_words[parameter.code] = known[parameter.address]
         for name, rule in self.profile.flags.items():
-            if rule.signal in reading.values:
-                reading.flags[name] = rule.evaluate(reading.values[rule.signal])
-        values = reading.values
+            if rule.signal in values:
+                reading.flags[name] = rule.evaluate(values[rule.signal])
         reading.fault = describe_fault(self.profile.faults, int(values.get('fault_code', 0)),
                                        int(values.get('fault_subcode', 0)))
         reading.warning_code = int(values.get('warning_code', 0))

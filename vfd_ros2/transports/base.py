@@ -71,7 +71,10 @@ class Transport(abc.ABC):
 
     def stats_for(self, unit: int) -> TransportStats:
         """Return the counters of one unit (drive) on this link; ``stats`` sums the link."""
-        return self._unit_stats.setdefault(unit, TransportStats())
+        found = self._unit_stats.get(unit)
+        if found is None:       # (not setdefault: it would build a TransportStats each call)
+            found = self._unit_stats[unit] = TransportStats()
+        return found
 
     def count(self, unit: int | None, counter: str, amount: int = 1) -> None:
         """Add to a counter of the link and, when the unit is known, of that unit."""
