@@ -164,6 +164,27 @@ def test_unknown_nic_is_a_clear_error(make_wheel):
     assert not status.online and 'cannot open nosuchnic0' in status.stop_reason
 
 
+def test_a_second_drive_node_on_the_nic_is_refused_and_says_use_a_bus_node(start_segment,
+                                                                             make_wheel):
+    """One drive_node per slave of one NIC (two masters on one segment) is refused.
+
+    The first keeps its drive; the second stays offline with the reason, instead
+    of resetting and driving both slaves as a second master would.
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    first = make_wheel('imo_hd2', auto_enable=True)
+    first.wait_status(lambda s: s.online, 10.0, 'first online')
+    second = make_wheel('boneng_mh', unit_id=2, auto_enable=True)
+    status = second.wait_status(lambda s: 'another EtherCAT master' in s.stop_reason, 10.0,
+                                'refused')
+    assert not status.online and 'one bus_node' in status.stop_reason
+    first.stream(1.0)
+    first.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                      'the first still drives its slave')
+    assert first.wait_status(lambda s: True, 1.0, 'status').reconnects == 0
+    assert sim.drive(1)['velocity_rpm'] == 0.0
+
+
 def test_slave_stuck_below_op_then_recovers(start_segment, make_wheel):
     sim = start_segment([IMO_HD2_EC_TX508])
     code = int(ALStatusCode.INVALID_OUTPUT_MAPPING)

@@ -6,6 +6,7 @@ drives run in their own process. Skips (saying why) without root or pysoem.
 
 from __future__ import annotations
 
+import os
 import struct
 import threading
 import time
@@ -224,6 +225,25 @@ def test_lost_slave_is_detected_and_brought_back(start_segment, open_segment):
     sim.power_cycle(1)
     wait_for(lambda: ('back', 1) in events, 5.0, 'the power-cycled slave to come back')
     assert sim.esc(1)['al_status'] == int(ALState.OP)
+
+
+def test_a_second_master_on_the_nic_is_refused_until_the_first_closes(start_segment,
+                                                                        open_segment):
+    """Two masters on one segment would each reset and drive every slave: one is refused.
+
+    (Two drive_node processes for two slaves of one NIC, the easy mistake.) The
+    guard is an flock, so it holds across processes; here two segments of one
+    process stand in for them (an flock is per open file, not per process).
+    """
+    start_segment([IMO_HD2_EC_TX508])
+    first = open_segment()
+    with pytest.raises(EthercatError, match=rf'driven by another EtherCAT master \(pid '
+                                            rf'{os.getpid()}\).*one bus_node'):
+        open_segment()
+    assert first.slaves[0].state is ALState.PRE_OP         # the first is left alone
+    first.close()
+    second = open_segment()                                 # free again once closed
+    assert [s.identity.product_code for s in second.slaves] == [0x9252]
 
 
 def test_open_without_slaves_times_out_boundedly(veth_link):

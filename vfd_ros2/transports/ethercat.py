@@ -32,10 +32,13 @@ live in a network namespace (``vfd_ros2.transports.netns``).
 from __future__ import annotations
 
 import enum
+import fcntl
 import logging
 import os
+import re
 import statistics
 import struct
+import tempfile
 import threading
 import time
 import warnings
@@ -67,6 +70,70 @@ ERROR_SETTLE_S = 0.02
 #: SDO uploads are tried this often when a frame is lost (WKC error): reading twice
 #: changes nothing. Downloads are not repeated; the caller decides.
 READ_ATTEMPTS = 2
+
+#: where a master process marks the NIC it drives (an flock, which the kernel drops
+#: when the process dies, however it dies)
+LOCK_DIR = '/run/lock' if os.path.isdir('/run/lock') else tempfile.gettempdir()
+
+
+class MasterLock:
+    """One EtherCAT master per NIC: an flock on a file named after the interface.
+
+    Two masters on one segment (two ``drive_node`` processes for two slaves of one
+    NIC, the easy mistake) would each reset and drive every slave, the other's
+    too. The second is refused with a clear error instead. The namespace is part
+    of the name: the same interface name in two network namespaces is two NICs.
+    """
+
+    def __init__(self, interface: str, namespace: str = '') -> None:
+        label = re.sub(r'[^A-Za-z0-9_.-]', '_', f'{namespace or "host"}-{interface}')
+        self.interface = interface
+        self.path = os.path.join(LOCK_DIR, f'vfd_ros2-ethercat-{label}.lock')
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        """Take the lock, or raise EthercatError naming who holds it (idempotent)."""
+        while self._fd is None:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except PermissionError:   # another user's file: locking needs no write access
+                fd = os.open(self.path, os.O_RDONLY)
+            except OSError as exc:
+                # No lock file possible here: drive on, without the guard, and say so.
+                log.warning('cannot create %s (%s): a second EtherCAT master on %s would '
+                            'not be noticed', self.path, exc, self.interface)
+                return
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 64, 0).decode(errors='replace').strip() or 'a process'
+                os.close(fd)
+                raise EthercatError(
+                    f'{self.interface} is driven by another EtherCAT master ({holder}): one '
+                    'process drives a segment; run all of its drives in one bus_node') from None
+            try:
+                current = os.stat(self.path).st_ino
+            except FileNotFoundError:
+                current = None
+            if current != os.fstat(fd).st_ino:
+                os.close(fd)       # its holder removed it as we opened it: take the new one
+                continue
+            try:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f'pid {os.getpid()}'.encode(), 0)
+            except OSError:
+                pass                             # read-only: the lock holds all the same
+            self._fd = fd
+
+    def release(self) -> None:
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            os.unlink(self.path)     # while still held (acquire checks it took a live file)
+        except OSError:
+            pass
+        os.close(fd)                             # closing drops the flock
 
 
 class SyncMode(enum.Enum):
@@ -337,6 +404,7 @@ class EthercatSegment:
         if settings.cycle_time_s <= 0:
             raise ValueError('cycle_time_s must be positive')
         self.settings = settings
+        self._master_lock = MasterLock(settings.interface, settings.namespace)
         self.on_emergency = on_emergency
         self.on_slave_lost = on_slave_lost
         self.on_slave_returned = on_slave_returned
@@ -360,6 +428,7 @@ class EthercatSegment:
             raise EthercatError('pysoem is not installed (pip install pysoem)')
         if self._master is not None:
             return [slave.identity for slave in self._slaves]
+        self._master_lock.acquire()
         master = pysoem.Master()
         master.always_release_gil = True            # never stall the process-data thread
         timeout_us = int(self.settings.sdo_timeout_s * 1e6)
@@ -375,6 +444,7 @@ class EthercatSegment:
                 master.close()                  # SOEM may keep the socket it made
             except Exception:  # noqa: BLE001 - best effort on a failed open
                 log.debug('close after a failed open', exc_info=True)
+            self._master_lock.release()
             raise EthercatError(f'cannot open {self.settings.interface}: {exc}') from exc
         self._master = master
         try:
@@ -500,6 +570,7 @@ class EthercatSegment:
         except Exception:  # noqa: BLE001 - best effort on the way out
             log.debug('could not request INIT on close', exc_info=True)
         master.close()
+        self._master_lock.release()
 
     def __enter__(self) -> 'EthercatSegment':
         return self
