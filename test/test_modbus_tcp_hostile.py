@@ -47,6 +47,7 @@ class HostileSlave:
 
     def __init__(self, port: int = 0) -> None:
         self.behaviour: Misbehaviour | None = None
+        self.close_after_reply = False       # as some gateways do: one reply per connection
         self._server = socket.create_server(('127.0.0.1', port))
         self.port = self._server.getsockname()[1]
         self._connections: list[socket.socket] = []
@@ -87,6 +88,9 @@ class HostileSlave:
                 try:
                     connection.sendall(reply)
                 except OSError:
+                    return
+                if self.close_after_reply:
+                    connection.close()
                     return
 
     def close(self) -> None:
@@ -195,3 +199,18 @@ def test_a_refused_connection_is_a_transport_error_and_a_later_listener_is_reach
     finally:
         transport.close()
         slave.close()
+
+
+def test_a_slave_that_closes_after_every_reply_is_reconnected_not_failed(slave, transport):
+    """A card or gateway that closes the connection after each reply (or when idle).
+
+    Sent into a connection the peer closed, every other exchange failed (link
+    lost); the transport sees the close before it sends and connects afresh.
+    """
+    slave.close_after_reply = True
+    for _ in range(2):
+        for offset in range(10):             # back to back, as a poll cycle reads
+            address = 0x100 + offset
+            assert transport.read_registers(1, address, 1) == [address]
+        time.sleep(0.05)                     # and after a pause
+    assert transport.stats.errors == 0, transport.stats

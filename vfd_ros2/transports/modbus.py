@@ -11,6 +11,8 @@ uses pymodbus' synchronous TCP client.
 from __future__ import annotations
 
 import logging
+import select
+import socket
 from typing import Any, Mapping
 
 from . import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
@@ -35,6 +37,7 @@ from .rtu_link import LinkBadFrame, LinkLost, LinkTimeout, RtuLink
 # The driver counts and reports every failed exchange itself (status counters,
 # diagnostics); pymodbus' own error logging would repeat each one per cycle.
 logging.getLogger('pymodbus').setLevel(logging.CRITICAL)
+log = logging.getLogger(__name__)
 
 #: Modbus exception codes as the specification defines them; the drive layer
 #: re-explains them with the drive's own manual (some drives use 3 for "CRC error").
@@ -161,11 +164,14 @@ class _PymodbusTransport(_ModbusTransport):
         except (OSError, ModbusException):
             pass
 
+    def _client_execute(self, request: ModbusPDU) -> ModbusPDU:
+        return self._client.execute(False, request)
+
     def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self._received = b''
         unit = request.dev_id
         try:
-            return self._client.execute(False, request)
+            return self._client_execute(request)
         except ConnectionException as exc:
             self.count(unit, 'connect_failures')
             self.close()
@@ -389,6 +395,7 @@ class ModbusTcpTransport(_PymodbusTransport):
         self.host = host
         self.port = port
         self.timeout = timeout
+        self._fresh = False       # the connection was made for the coming exchange
         super().__init__()
 
     @classmethod
@@ -403,3 +410,50 @@ class ModbusTcpTransport(_PymodbusTransport):
     @property
     def description(self) -> str:
         return f'tcp://{self.host}:{self.port}'
+
+    def open(self) -> None:
+        if self._peer_closed():
+            # The card or gateway closed the connection between two exchanges (some
+            # close after every reply, or after an idle time): connect afresh now,
+            # rather than send into it and fail every other exchange.
+            log.debug('%s closed the connection: connecting again', self.description)
+            self.close()
+        if self._client.socket is None:
+            super().open()
+            self._fresh = True
+
+    def _client_execute(self, request: ModbusPDU) -> ModbusPDU:
+        """Execute; on a reused connection the peer dropped meanwhile, once more afresh.
+
+        A peer that closes after each reply may do so just after this side looked
+        (``open``) and before it sent: the request then meets the close. Only a
+        connection that was already in use is tried again, once, on a new one (a new
+        connection that fails is the drive's failure); register reads and writes
+        are idempotent, so the repeat changes nothing the first did.
+        """
+        reused, self._fresh = not self._fresh, False
+        try:
+            return self._client.execute(False, request)
+        except (ConnectionException, ConnectionError) as exc:
+            if not reused:
+                raise
+            log.debug('%s: %s on a reused connection: once more on a new one',
+                      self.description, exc)
+            self.close()
+            if not self._client.connect():
+                raise
+            return self._client.execute(False, request)
+
+    def _peer_closed(self) -> bool:
+        """Return whether the open connection was closed (or reset) by the other end."""
+        sock = self._client.socket
+        if sock is None:
+            return False
+        try:
+            if not select.select([sock], [], [], 0)[0]:
+                return False                   # nothing arrived: still open
+            return sock.recv(1, socket.MSG_PEEK) == b''      # b'': the peer's FIN
+        except BlockingIOError:
+            return False
+        except OSError:
+            return True                        # reset, or the socket is broken
