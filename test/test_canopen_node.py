@@ -291,6 +291,32 @@ def test_malformed_frames_are_counted_and_logged_once_per_cob_id(make_can_harnes
         sender.shutdown()
 
 
+@pytest.mark.parametrize('profile', ['cia402_velocity', 'kinco_ec'])
+def test_tpdos_that_stop_while_the_heartbeat_goes_on_are_stale_not_status(make_can_harness,
+                                                                          profile):
+    """A node whose heartbeat and SDO go on but whose TPDOs stop (a dead PDO producer).
+
+    Its last status would otherwise stand for ever. A TPDO sent at a known rate
+    (each SYNC for cia402_velocity) that stops takes the drive offline, and it
+    comes back when they resume; the Kinco's TPDOs come on change only, so their
+    silence is normal and the drive stays online.
+    """
+    h = make_can_harness(profile=profile)
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.wait_status(lambda s: s.online, 5.0, 'online')
+    sim.tpdos_off = True
+    if profile == 'kinco_ec':
+        time.sleep(1.0)
+        assert wheel.wait_status(lambda s: True, 1.0, 'status').online
+        return
+    status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline: TPDOs stale')
+    assert 'no TPDO1 from node 1' in status.stop_reason and 'stale' in status.stop_reason
+    assert status.timeouts > 0
+    sim.tpdos_off = False
+    status = wheel.wait_status(lambda s: s.online, 5.0, 'online again')
+    assert status.reconnects >= 1
+
+
 def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
     """One producer per channel (two drive nodes here), 0x700 + 127, state 05, periodic."""
     h = make_can_harness(node_ids=(1, 2))

@@ -27,7 +27,7 @@ from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 from canopen.emcy import EmcyError
 
-from ..errors import ParameterError, ProfileError, ProtocolException, TransportError
+from ..errors import CommTimeout, ParameterError, ProfileError, ProtocolException, TransportError
 from ..profiles import (
     NO_FAULT,
     CanObject,
@@ -43,7 +43,7 @@ from ..profiles import (
 from ..protocol.cia402 import State
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter
-from ..transports.canopen import CanopenTransport, ObjectEntry
+from ..transports.canopen import SYNCHRONOUS_MAX, CanopenTransport, ObjectEntry
 from .base import (
     HOST_LOSS_JITTER,
     DriveOnLink,
@@ -61,6 +61,10 @@ GENERIC_ERROR = 0x1000
 #: at most once per period (s)
 EMCY_LOGGED_MAX = 32
 EMCY_SUMMARY_PERIOD = 10.0
+#: a TPDO the drive sends at a known rate (each SYNC, or its event timer) is missing
+#: after this many of its periods, and at least TPDO_SLACK s more: its values are stale
+TPDO_PERIODS_MISSED = 3
+TPDO_SLACK = 0.25
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
@@ -148,6 +152,10 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         #: the host-loss protection configure() could set (None: not connected yet)
         self.protection_applied: HostLossProtection | None = None
         self._host_period = transport.host_heartbeat_period(0.0)
+        self._interval: float | None = None    # the bus's addressing interval (a SYNC each)
+        self._tpdo_periods: dict[int, float] = {}   # TPDO number -> s between two, at most
+        self._tpdo_polls: dict[int, tuple[float, int]] = {}  # -> (heard, polls since)
+        self._configured_at = 0.0
         self._configured = False
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
@@ -211,6 +219,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         """
         period = self.transport.host_heartbeat_period(interval)
         self._host_period = period
+        self._interval = interval
         if requested == 0:
             return HostLossProtection(requested=0.0, note='off, as drive_comm_timeout 0 asks')
         minimum = 2 * max(period, interval) + HOST_LOSS_JITTER
@@ -279,8 +288,55 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             problems.append('heartbeat is off (heartbeat_ms 0): link loss is not detected')
             timeout = 0.0
         t.supervise(unit, timeout)
+        self._tpdo_periods = self._tpdo_rates()
+        self._tpdo_polls.clear()
+        self._configured_at = time.monotonic()
         self._configured = True
         return problems
+
+    def _tpdo_rates(self) -> dict[int, float]:
+        """Return the longest time between two TPDOs, for each one sent at a known rate.
+
+        Synchronous TPDOs come with every n-th SYNC, which this host sends once per
+        bus cycle (when it produces SYNC); asynchronous ones at least every event
+        timer. Event-driven TPDOs without a timer (sent on change only, e.g. the
+        Kinco's) may rightly stay silent: no rate, not supervised.
+        """
+        spec, rates = self.spec, {}
+        for number, group in enumerate(self.tpdo_layout, 1):
+            if not group:
+                continue
+            if spec.transmission_type <= SYNCHRONOUS_MAX:
+                if self.transport.sync_producer and self._interval:
+                    rates[number] = max(spec.transmission_type, 1) * self._interval
+            elif spec.tpdo_event_timer_ms > 0:
+                rates[number] = spec.tpdo_event_timer_ms / 1000.0
+        return rates
+
+    def _check_tpdos_arrive(self) -> None:
+        """Raise CommTimeout when a TPDO sent at a known rate stopped: its values are stale.
+
+        A node whose heartbeat goes on but whose TPDOs stop (a PDO producer that
+        died, a mapping lost) would otherwise show its last status for ever. Missing
+        means too long ago and, for a synchronous one, over several polls (each
+        after a SYNC): a loop that paused (a long service action) sent no SYNC then.
+        """
+        now = time.monotonic()
+        synchronous = self.spec.transmission_type <= SYNCHRONOUS_MAX
+        for number, period in self._tpdo_periods.items():
+            heard = max(self.transport.tpdo_heard(self.unit_id, number) or 0.0,
+                        self._configured_at)
+            polls = self._tpdo_polls.get(number, (0.0, 0))
+            polls = (heard, polls[1] + 1) if polls[0] == heard else (heard, 0)
+            self._tpdo_polls[number] = polls
+            age = now - heard
+            if age > max(TPDO_PERIODS_MISSED * period, period + TPDO_SLACK) and (
+                    not synchronous or
+                    polls[1] > TPDO_PERIODS_MISSED * self.spec.transmission_type):
+                self.transport.count(self.unit_id, 'timeouts')
+                raise CommTimeout(f'no TPDO{number} from node {self.unit_id} for {age:.2f} s '
+                                  f'(expected every {period * 1000:.0f} ms): its status is '
+                                  'stale')
 
     def _protect(self, protection: HostLossProtection, problems: list[str]) -> HostLossProtection:
         """Produce the host heartbeat and set what ``protection`` plans; return what holds.
@@ -435,6 +491,8 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
                 continue
             for (role, _), raw in zip(group, raws):
                 self._values[role] = raw
+        if self._configured:
+            self._check_tpdos_arrive()
         self._update_state()
         self._take_emcy()
         return self._reading()

@@ -113,6 +113,7 @@ class SimulatedCanopenDrive:
         self._consumer_cob: int | None = None
         self._host_seen: float | None = None
         self.silent = False
+        self.tpdos_off = False      # heartbeat and SDO go on, no TPDO (a dead PDO producer)
         self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
         self.emcy_sent: list[tuple[int, int, bytes]] = []
         self.rpdos_received = 0
@@ -477,7 +478,7 @@ class SimulatedCanopenDrive:
         if period > 0 and now - self._last_heartbeat >= period:
             self._last_heartbeat = now
             self.network.send_message(0x700 + self.node_id, bytes((self.node.nmt._state,)))  # noqa: SLF001
-        if self.node.nmt.state != 'OPERATIONAL':
+        if self.node.nmt.state != 'OPERATIONAL' or self.tpdos_off:
             return
         for number in range(self.spec.tpdos):
             if self._stored(0x1800 + number, 2) <= SYNCHRONOUS_MAX:
@@ -559,7 +560,7 @@ class SimulatedCanopenDrive:
             pending, self._rpdo_pending = self._rpdo_pending, {}
             for number, payload in pending.items():
                 self._apply_rpdo(number, payload)
-            for number in range(self.spec.tpdos):
+            for number in range(self.spec.tpdos if not self.tpdos_off else 0):
                 kind = self._stored(0x1800 + number, 2)
                 if kind > SYNCHRONOUS_MAX:
                     continue

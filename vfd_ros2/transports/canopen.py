@@ -484,6 +484,8 @@ class _Link:
     supervise_from: float = 0.0
     subscriptions: list[tuple[int, Callable[..., None]]] = field(default_factory=list)
     bad_tpdo: dict[int, float] = field(default_factory=dict)
+    tpdo_stamp: dict[int, float] = field(default_factory=dict)   # the last frame's stamp
+    tpdo_heard: dict[int, float] = field(default_factory=dict)   # when it was taken (host)
     synchronous: bool = False      # its RPDOs take effect at the next SYNC
 
 
@@ -632,6 +634,8 @@ class CanopenTransport(Transport):
             link.booted = False
             link.supervise_timeout = 0.0
             link.bad_tpdo.clear()
+            link.tpdo_stamp.clear()
+            link.tpdo_heard.clear()
         with channel.lock:
             if channel.network.nodes.get(unit) is not None:
                 raise ParameterError(f'CANopen node id {unit} is already driven on '
@@ -854,11 +858,21 @@ class CanopenTransport(Transport):
                 link.bad_tpdo[number] = stamp
                 self.count(unit, 'bad_frames')
             return None
+        if link.tpdo_stamp.get(number) != stamp:
+            link.tpdo_stamp[number] = stamp
+            link.tpdo_heard[number] = time.monotonic()
         values = []
         for var in pdo.map:
             start = var.offset // 8
             values.append(var.od.decode_raw(bytes(data[start:start + var.length // 8])))
         return values
+
+    def tpdo_heard(self, unit: int, number: int) -> float | None:
+        """Return when ``received`` first took the newest well-formed TPDO ``number``.
+
+        This host's monotonic clock; None: none from node ``unit`` since it opened.
+        """
+        return self._link(unit).tpdo_heard.get(number)
 
     def take_emcy(self, unit: int) -> tuple[list[EmcyError], list[EmcyError]]:
         """Return (EMCYs received since the last call, the active ones) of node ``unit``."""
