@@ -375,8 +375,9 @@ BOUNDS = """### Targets and what bounds them
   fewer transactions per cycle (the profile's `every:` for slow values, a drive that
   allows longer reads); a faster executor would not do it.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
-  core) — CPU met, the wire's limit just short: 87-90 % over the full runs of 2026-11-23
-  (normal priority and the bus's `realtime_priority: 50`).** Before the executor change
+  core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
+  host (91.5 % in the re-run of 2026-11-23 night; 89.3 % at normal priority), 87-90 % in
+  the full runs of that day with host steal.** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
