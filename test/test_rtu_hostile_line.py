@@ -233,3 +233,24 @@ def test_the_master_keeps_t35_after_every_reply_on_a_timed_wire(tmp_path):
     finally:
         transport.close()
         line.stop()
+
+
+def test_a_port_another_process_holds_is_refused_with_the_reason():
+    """Two drive_nodes on one RS-485 line: the second cannot open it, and says why."""
+    import os
+    import pty
+    master, slave = pty.openpty()
+    name = os.ttyname(slave)
+    first = ModbusRtuTransport(name, baudrate=19200, parity='N', stopbits=1, timeout=0.1)
+    second = ModbusRtuTransport(name, baudrate=19200, parity='N', stopbits=1, timeout=0.1)
+    try:
+        first.open()
+        with pytest.raises(TransportError, match='another process or node holds the port'):
+            second.open()
+        first.close()
+        second.open()                        # free once the first let go
+    finally:
+        first.close()
+        second.close()
+        os.close(master)
+        os.close(slave)

@@ -131,7 +131,11 @@ class RtuLink:
                                  parity=self.parity, stopbits=self.stopbits, timeout=0,
                                  write_timeout=self.timeout, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkLost(str(exc)) from exc
+            hint = ''
+            if 'exclusively lock' in str(exc):      # pyserial's flock of the device
+                hint = (': another process or node holds the port (drives sharing one line belong '
+                        'in one bus_node, not a drive_node each)')
+            raise LinkLost(f'{exc}{hint}') from exc
         self._serial = port
         self._fd = port.fileno()
         os.set_blocking(self._fd, False)      # pyserial opens so; _read_available relies on it
