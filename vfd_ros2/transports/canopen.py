@@ -325,6 +325,22 @@ class _PartialReadFilter(logging.Filter):
 
 _PARTIAL_READS = _PartialReadFilter()
 
+
+class _ClientAbortFilter(logging.Filter):
+    """Drop the canopen library's ERROR line for each SDO transfer this host aborts.
+
+    Every abort comes from a call of this transport (a timeout, an endless upload),
+    which reports it itself, with the node and the object, as an error of that
+    drive. The library's line names neither; with a node unplugged it came at each
+    reconnect attempt, several a second, for as long as the node stayed away.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith('Transfer aborted by client')
+
+
+_CLIENT_ABORTS = _ClientAbortFilter()
+
 _CHANNELS: dict[tuple[str, str, int, str], 'CanChannel'] = {}
 _CHANNELS_LOCK = threading.Lock()
 
@@ -395,6 +411,7 @@ class CanChannel:
         with _CHANNELS_LOCK:
             found = _CHANNELS.get(key)
             if found is None:
+                logging.getLogger('canopen.sdo.client').addFilter(_CLIENT_ABORTS)
                 kwargs: dict[str, Any] = {**extra, 'interface': interface, 'channel': channel}
                 if interface == 'socketcand':
                     logging.getLogger('can.interfaces.socketcand.socketcand').addFilter(
