@@ -246,6 +246,27 @@ def test_a_second_master_on_the_nic_is_refused_until_the_first_closes(start_segm
     assert [s.identity.product_code for s in second.slaves] == [0x9252]
 
 
+def test_a_lock_file_that_cannot_be_made_leaves_the_master_unguarded_not_broken(tmp_path,
+                                                                                monkeypatch,
+                                                                                caplog):
+    """/run/lock not writable for this user (raw-socket rights, no root): warned, not fatal."""
+    from vfd_ros2.transports import ethercat
+    locked = tmp_path / 'locks'
+    locked.mkdir()
+    monkeypatch.setattr(ethercat, 'LOCK_DIR', str(locked))
+    lock = ethercat.MasterLock('eth9')
+    real_open = os.open
+
+    def refusing_open(path, flags, mode=0o777):
+        if str(path).startswith(str(locked)):
+            raise PermissionError(13, 'Permission denied', path)
+        return real_open(path, flags, mode)
+    monkeypatch.setattr(ethercat.os, 'open', refusing_open)
+    lock.acquire()                                      # no exception: unguarded
+    assert 'a second EtherCAT master on eth9 would not be noticed' in caplog.text
+    lock.release()
+
+
 def test_open_without_slaves_times_out_boundedly(veth_link):
     link = EthercatSegment(SegmentSettings(interface=veth_link.master_interface,
                                            namespace=veth_link.namespace))

@@ -94,14 +94,8 @@ class MasterLock:
     def acquire(self) -> None:
         """Take the lock, or raise EthercatError naming who holds it (idempotent)."""
         while self._fd is None:
-            try:
-                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            except PermissionError:   # another user's file: locking needs no write access
-                fd = os.open(self.path, os.O_RDONLY)
-            except OSError as exc:
-                # No lock file possible here: drive on, without the guard, and say so.
-                log.warning('cannot create %s (%s): a second EtherCAT master on %s would '
-                            'not be noticed', self.path, exc, self.interface)
+            fd = self._open()
+            if fd is None:
                 return
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -124,6 +118,22 @@ class MasterLock:
             except OSError:
                 pass                             # read-only: the lock holds all the same
             self._fd = fd
+
+    def _open(self) -> int | None:
+        """Open (or create) the lock file; None when neither works (warned)."""
+        problem: OSError | None = None
+        for flags in (os.O_RDWR | os.O_CREAT, os.O_RDONLY):
+            try:
+                return os.open(self.path, flags, 0o644)
+            except PermissionError as exc:   # another user's file: locking needs no writing
+                problem = exc
+            except OSError as exc:
+                problem = exc
+                break
+        # No lock file possible here: drive on, without the guard, and say so.
+        log.warning('cannot open %s (%s): a second EtherCAT master on %s would not be noticed',
+                    self.path, problem, self.interface)
+        return None
 
     def release(self) -> None:
         fd, self._fd = self._fd, None
