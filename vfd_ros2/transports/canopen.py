@@ -310,36 +310,30 @@ def parse_can_options(options: str | Mapping[str, Any] | None) -> dict[str, Any]
 
 # --- the channel: one bus, one Network, one host heartbeat --------------------------------
 
-class _PartialReadFilter(logging.Filter):
-    """Drop python-can socketcand's warning for a TCP read that ends inside a frame.
+class _DropMessage(logging.Filter):
+    """Drop a library's log records whose message starts with ``prefix``; others pass."""
 
-    Ordinary on a stream (the client keeps the rest for the next read), it came for
-    most reads at a few thousand frames/s: a flood on bus_node's console, written
-    from the receive thread. The client's other warnings (a frame it cannot parse,
-    a refused connection) pass.
-    """
+    def __init__(self, prefix: str) -> None:
+        super().__init__()
+        self.prefix = prefix
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith('Got incomplete message')
+        return not str(record.msg).startswith(self.prefix)
 
 
-_PARTIAL_READS = _PartialReadFilter()
+#: python-can socketcand's warning for a TCP read that ends inside a frame. Ordinary on
+#: a stream (the client keeps the rest for the next read), it came for most reads at a
+#: few thousand frames/s: a flood on bus_node's console, written from the receive
+#: thread. The client's other warnings (a frame it cannot parse, a refused connection)
+#: pass.
+_PARTIAL_READS = _DropMessage('Got incomplete message')
 
-
-class _ClientAbortFilter(logging.Filter):
-    """Drop the canopen library's ERROR line for each SDO transfer this host aborts.
-
-    Every abort comes from a call of this transport (a timeout, an endless upload),
-    which reports it itself, with the node and the object, as an error of that
-    drive. The library's line names neither; with a node unplugged it came at each
-    reconnect attempt, several a second, for as long as the node stayed away.
-    """
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith('Transfer aborted by client')
-
-
-_CLIENT_ABORTS = _ClientAbortFilter()
+#: the canopen library's ERROR line for each SDO transfer this host aborts. Every abort
+#: comes from a call of this transport (a timeout, an endless upload), which reports it
+#: itself, with the node and the object, as an error of that drive. The library's line
+#: names neither; with a node unplugged it came at each reconnect attempt, several a
+#: second, for as long as the node stayed away.
+_CLIENT_ABORTS = _DropMessage('Transfer aborted by client')
 
 _CHANNELS: dict[tuple[str, str, int, str], 'CanChannel'] = {}
 _CHANNELS_LOCK = threading.Lock()
