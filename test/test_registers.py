@@ -7,6 +7,7 @@ import random
 import pytest
 
 from vfd_ros2.profiles import Parameter, ValueType, WordOrder
+from vfd_ros2.protocol.modbus_crc import crc16
 from vfd_ros2.protocol.registers import (
     ReadBlock,
     decode_words,
@@ -218,3 +219,31 @@ def test_plan_properties_on_random_inputs():
         assert starts == sorted(starts)
         for first, second in zip(blocks, blocks[1:]):
             assert first.start + first.count <= second.start        # no overlap
+
+
+# --- CRC-16/MODBUS --------------------------------------------------------------------
+
+
+def test_crc16_equals_pymodbus_on_random_frames_of_every_length():
+    from pymodbus.framer.rtu import FramerRTU
+
+    rng = random.Random(7)
+    for length in range(0, 257):
+        for _ in range(3):
+            data = bytes(rng.randrange(256) for _ in range(length))
+            # pymodbus returns the two CRC bytes as a big-endian number, low byte first
+            assert crc16(data).to_bytes(2, 'little') == \
+                FramerRTU.compute_CRC(data).to_bytes(2, 'big'), data.hex()
+
+
+def test_crc16_of_a_frame_with_its_crc_is_zero_and_one_flipped_bit_is_not():
+    # Read 3 registers from 0x006B of unit 17, the usual RTU example frame (CRC 76 87)
+    frame = bytes.fromhex('11 03 00 6B 00 03')
+    crc = crc16(frame)
+    assert crc == 0x8776            # sent as 76 87
+    whole = frame + crc.to_bytes(2, 'little')
+    assert crc16(whole) == 0
+    for bit in range(8 * len(whole)):
+        flipped = bytearray(whole)
+        flipped[bit // 8] ^= 1 << (bit % 8)
+        assert crc16(bytes(flipped)) != 0

@@ -15,6 +15,8 @@ from unit_support import shipped_profile
 from vfd_ros2.errors import BadFrame, CommTimeout, ProtocolException, TransportError
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import LineFaults, SimulatedRtuLine
+from vfd_ros2.transports import modbus as modbus_transport
+from vfd_ros2.transports import rtu_link
 from vfd_ros2.transports.modbus import ModbusRtuTransport
 
 TIMEOUT = 0.03
@@ -254,3 +256,25 @@ def test_a_port_another_process_holds_is_refused_with_the_reason():
         second.close()
         os.close(master)
         os.close(slave)
+
+
+def test_reads_stay_right_while_the_reused_requests_are_replaced(tmp_path, monkeypatch):
+    # The transport reuses each read's request and the link its frame; with stores of
+    # 3, every few reads empties them: a stale frame would read another block.
+    monkeypatch.setattr(modbus_transport, 'READ_REQUESTS_KEPT', 3)
+    monkeypatch.setattr(rtu_link, 'FRAMES_KEPT', 3)
+    drive, blocks = distinct_drive(1)
+    line = SimulatedRtuLine([drive], tmp_path / 'line', baudrate=115200, seed=7).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=0.2)
+    rng = random.Random(5)
+    plan = [(1, address + offset, values[offset:offset + count])
+            for address, values in blocks for offset in range(5)
+            for count in range(1, 6 - offset)]
+    try:
+        good, phantoms, failures = run_reads(transport, plan, 300, rng)
+        assert len(transport._read_requests) <= 3          # noqa: SLF001
+        assert len(transport._link._frames) <= 3            # noqa: SLF001
+    finally:
+        transport.close()
+        line.stop()
+    assert (good, phantoms, failures) == (300, 0, 0)

@@ -54,6 +54,11 @@ STANDARD_EXCEPTIONS: dict[int, str] = {
 }
 
 
+#: read requests kept for reuse: a drive's status reads are a few per drive; parameter
+#: reads (services, backups) may name any address, so the store is emptied when full
+READ_REQUESTS_KEPT = 512
+
+
 class _ModbusTransport(RegisterTransport):
     """What every Modbus transport shares: the requests, reply checks and counters.
 
@@ -67,65 +72,89 @@ class _ModbusTransport(RegisterTransport):
 
     def __init__(self) -> None:
         super().__init__()
+        # (unit, address, count) -> its read request: a drive's status reads repeat every
+        # cycle, so their PDUs (and, on RTU, their frames) are built once
+        self._read_requests: dict[tuple[int, int, int], ReadHoldingRegistersRequest] = {}
 
-    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+    def _exchange(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         raise NotImplementedError
 
-    def _execute(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+    @staticmethod
+    def _what(request: ModbusPDU) -> str:
+        """Name an exchange for an error message (built only when one is raised)."""
+        unit, address, registers = request.dev_id, request.address, request.registers
+        if isinstance(request, ReadHoldingRegistersRequest):
+            return f'read {request.count} @ {address:#06x} (unit {unit})'
+        if isinstance(request, WriteSingleRegisterRequest):
+            return f'write {registers[0]:#06x} @ {address:#06x} (unit {unit})'
+        return f'write {len(registers)} @ {address:#06x} (unit {unit})'
+
+    def _execute(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self.open()
         unit = request.dev_id
-        self.count(unit, 'frames_sent')
-        reply = self._exchange(what, request, reply_bytes)
-        self.count(unit, 'frames_received')
+        link, own = self.stats, self.stats_for(unit)
+        link.frames_sent += 1
+        own.frames_sent += 1
+        reply = self._exchange(request, reply_bytes)
+        link.frames_received += 1
+        own.frames_received += 1
         if (reply.function_code & 0x7F) != request.function_code:
             # pymodbus pairs a TCP reply by transaction id alone and decodes whatever
             # function it names: a reply to another function is not this one's value.
-            raise self._mismatch(unit, what, f'the reply is to function '
+            raise self._mismatch(request, f'the reply is to function '
                                  f'{reply.function_code & 0x7F}, not {request.function_code}')
         if isinstance(reply, ExceptionResponse):
             self.count(unit, 'exceptions')
             code = reply.exception_code
             raise ProtocolException(code, STANDARD_EXCEPTIONS.get(code, 'unknown exception'),
-                                    what)
+                                    self._what(request))
         if reply.isError():
             self.count(unit, 'bad_frames')
-            raise BadFrame(f'{what}: error reply {reply}')
+            raise BadFrame(f'{self._what(request)}: error reply {reply}')
         return reply
 
-    def _mismatch(self, unit: int, what: str, problem: str) -> BadFrame:
-        self.count(unit, 'bad_frames')
-        return BadFrame(f'{what}: {problem}')
+    def _mismatch(self, request: ModbusPDU, problem: str) -> BadFrame:
+        self.count(request.dev_id, 'bad_frames')
+        return BadFrame(f'{self._what(request)}: {problem}')
+
+    def _count_transaction(self, unit: int) -> None:
+        self.stats.transactions += 1
+        self.stats_for(unit).transactions += 1
 
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
-        what = f'read {count} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, ReadHoldingRegistersRequest(
-            address=address, count=count, dev_id=unit), reply_size(3, count))
-        if len(reply.registers) != count:
-            raise self._mismatch(unit, what, f'got {len(reply.registers)} registers')
-        self.count(unit, 'transactions')
-        return list(reply.registers)
+        key = (unit, address, count)
+        request = self._read_requests.get(key)
+        if request is None:
+            if len(self._read_requests) >= READ_REQUESTS_KEPT:
+                self._read_requests.clear()
+            request = self._read_requests[key] = ReadHoldingRegistersRequest(
+                address=address, count=count, dev_id=unit)
+        registers = self._execute(request, reply_size(3, count)).registers
+        if len(registers) != count:
+            raise self._mismatch(request, f'got {len(registers)} registers')
+        self._count_transaction(unit)
+        return list(registers)
 
     def write_register(self, unit: int, address: int, value: int) -> None:
         value &= 0xFFFF
-        what = f'write {value:#06x} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, WriteSingleRegisterRequest(
-            address=address, registers=[value], dev_id=unit), reply_size(6))
+        request = WriteSingleRegisterRequest(address=address, registers=[value], dev_id=unit)
+        reply = self._execute(request, reply_size(6))
         echoed = reply.registers[0] if reply.registers else None
         if reply.address != address or echoed != value:
             # The spec's reply to 06 is an echo of the request: anything else was
             # not this write's reply (or the drive did not store the value).
             shown = 'nothing' if echoed is None else f'{echoed:#06x}'
-            raise self._mismatch(unit, what, f'echo names {shown} @ {reply.address:#06x}')
-        self.count(unit, 'transactions')
+            raise self._mismatch(request, f'echo names {shown} @ {reply.address:#06x}')
+        self._count_transaction(unit)
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        what = f'write {len(values)} @ {address:#06x} (unit {unit})'
-        reply = self._execute(what, WriteMultipleRegistersRequest(
-            address=address, registers=[v & 0xFFFF for v in values], dev_id=unit),
-            reply_size(16))
+        request = WriteMultipleRegistersRequest(
+            address=address, registers=[v & 0xFFFF for v in values], dev_id=unit)
+        reply = self._execute(request, reply_size(16))
         if reply.address != address or reply.count != len(values):
-            raise self._mismatch(unit, what, f'reply names {reply.count} @ {reply.address:#06x}')
-        self.count(unit, 'transactions')
+            raise self._mismatch(request,
+                                 f'reply names {reply.count} @ {reply.address:#06x}')
+        self._count_transaction(unit)
 
 
 class _PymodbusTransport(_ModbusTransport):
@@ -167,7 +196,7 @@ class _PymodbusTransport(_ModbusTransport):
     def _client_execute(self, request: ModbusPDU) -> ModbusPDU:
         return self._client.execute(False, request)
 
-    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+    def _exchange(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self._received = b''
         unit = request.dev_id
         try:
@@ -175,17 +204,20 @@ class _PymodbusTransport(_ModbusTransport):
         except ConnectionException as exc:
             self.count(unit, 'connect_failures')
             self.close()
-            raise TransportError(f'{what}: link lost ({self.description}): {exc}') from exc
+            raise TransportError(f'{self._what(request)}: link lost ({self.description}): '
+                                 f'{exc}') from exc
         except ModbusIOException as exc:
             if self._received:
                 self.count(unit, 'bad_frames')
-                raise BadFrame(f'{what}: malformed reply {self._received.hex(" ")}') from exc
+                raise BadFrame(f'{self._what(request)}: malformed reply '
+                               f'{self._received.hex(" ")}') from exc
             self.count(unit, 'timeouts')
-            raise CommTimeout(f'{what}: no reply from {self.description}') from exc
+            raise CommTimeout(f'{self._what(request)}: no reply from '
+                              f'{self.description}') from exc
         except (ModbusException, OSError, ValueError) as exc:
             self.count(unit, 'bad_frames')
             self.close()
-            raise TransportError(f'{what}: {exc}') from exc
+            raise TransportError(f'{self._what(request)}: {exc}') from exc
         finally:
             self.stats.bytes_received += len(self._received)
 
@@ -338,20 +370,22 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
     def close(self) -> None:
         self._link.close()
 
-    def _exchange(self, what: str, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
+    def _exchange(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         unit = request.dev_id
         try:
             return self._link.transact(request, reply_bytes)
         except LinkLost as exc:
             self.count(unit, 'connect_failures')
             self.close()
-            raise TransportError(f'{what}: link lost ({self.description}): {exc}') from exc
+            raise TransportError(f'{self._what(request)}: link lost ({self.description}): '
+                                 f'{exc}') from exc
         except LinkTimeout as exc:
             self.count(unit, 'timeouts')
-            raise CommTimeout(f'{what}: no reply from {self.description}') from exc
+            raise CommTimeout(f'{self._what(request)}: no reply from '
+                              f'{self.description}') from exc
         except LinkBadFrame as exc:
             self.count(unit, 'bad_frames')
-            raise BadFrame(f'{what}: {exc} {exc.data.hex(" ")}') from exc
+            raise BadFrame(f'{self._what(request)}: {exc} {exc.data.hex(" ")}') from exc
 
 
 class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):

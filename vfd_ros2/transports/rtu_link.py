@@ -1,13 +1,15 @@
 """A thin Modbus RTU master over pyserial, framed and decoded by pymodbus.
 
 pymodbus builds every request frame (``FramerRTU.buildFrame`` over its request
-PDUs, so the bytes on the wire are exactly the stock client's), tells the
-length of a reply from its first bytes (its PDU classes'
-``calculateRtuFrameSize``) and decodes it. What this layer replaces is only how
-a transaction is driven, because the stock synchronous client (pymodbus 3.16
-``ModbusSerialClient``) does not know how long the reply is: it polls
-``in_waiting`` with ``time.sleep`` of four character times (at least 1 ms) until
-the byte count stops growing, which costs two or more polling periods per reply.
+PDUs, so the bytes on the wire are exactly the stock client's; a read request the
+transport asks again and again is built once), tells the length of a reply from
+its first bytes (its PDU classes' ``calculateRtuFrameSize``) and decodes it. The
+reply's CRC is checked by ``protocol.modbus_crc`` (the same CRC, in fewer steps).
+What this layer replaces is only how a transaction is driven, because the stock
+synchronous client (pymodbus 3.16 ``ModbusSerialClient``) does not know how long
+the reply is: it polls ``in_waiting`` with ``time.sleep`` of four character times
+(at least 1 ms) until the byte count stops growing, which costs two or more
+polling periods per reply.
 
 Here every reply is one frame that must match its request:
 
@@ -58,12 +60,15 @@ from pymodbus.framer import FramerRTU
 from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 
 from ..protocol.linux_thread import tighten_timer_slack
+from ..protocol.modbus_crc import crc16
 from ..protocol.rtu_timing import character_time, frame_gap
 
 #: longest RTU frame (Modbus over Serial Line V1.02, 2.5.1.1: 256 bytes)
 MAX_FRAME = 256
 #: bytes that name a reply's length: unit, function code, byte count
 _HEADER = 3
+#: request frames kept for reuse (a drive's status reads: a few per drive)
+FRAMES_KEPT = 512
 
 
 class LinkTimeout(Exception):
@@ -112,6 +117,12 @@ class RtuLink:
         self._on_bytes = on_bytes or (lambda _sending, _count: None)
         self._on_discard = on_discard or (lambda _unit, _kind: None)
         self._framer = FramerRTU(DecodePDU(is_server=False))
+        # function code -> PDU class, for the codes without sub-functions (pymodbus'
+        # lookupPduClass costs as much as the rest of sizing a frame, three times a reply)
+        self._pdu_classes: dict[int, type[ModbusPDU] | None] = {}
+        # id(request) -> (request, frame) of the read requests the transport reuses;
+        # the entry holds the request, so its id cannot be taken by another object
+        self._frames: dict[int, tuple[ModbusPDU, bytes]] = {}
         self._serial: serial.Serial | None = None
         self._fd = -1
         self._quiet_from = 0.0     # monotonic time from which the line may be used again
@@ -176,7 +187,7 @@ class RtuLink:
         if self._tuned_thread != threading.get_ident():
             tighten_timer_slack()
             self._tuned_thread = threading.get_ident()
-        frame = self._framer.buildFrame(request)
+        frame = self._frame(request)
         unit = request.dev_id
         try:
             self._wait_until_quiet(unit)
@@ -187,12 +198,12 @@ class RtuLink:
                 self._check_echo(frame, sent_at)
             deadline = sent_at + len(frame) * self.char_time + self.timeout
             while True:
-                data = self._read_frame(deadline, reply_bytes)
+                data, size = self._read_frame(deadline, reply_bytes)
                 if not data:
                     self._hold[unit] = time.monotonic() + self.late_reply_guard
                     self._quiet_from = time.monotonic()
                     raise LinkTimeout('no reply')
-                pdu = self._decode(data)
+                pdu = self._decode(data, size)
                 if pdu is None:
                     self._resync()
                     raise LinkBadFrame('malformed reply', data)
@@ -232,6 +243,23 @@ class RtuLink:
 
     # --- internals ----------------------------------------------------------------
 
+    def _frame(self, request: ModbusPDU) -> bytes:
+        """Return the frame of ``request``: built once for a read, which repeats.
+
+        The transport hands over the same read request object each cycle
+        (``_ModbusTransport.read_registers``); PDUs are not changed once built.
+        """
+        if request.function_code != 3:
+            return self._framer.buildFrame(request)
+        kept = self._frames.get(id(request))
+        if kept is not None and kept[0] is request:
+            return kept[1]
+        if len(self._frames) >= FRAMES_KEPT:
+            self._frames.clear()
+        frame = self._framer.buildFrame(request)
+        self._frames[id(request)] = (request, frame)
+        return frame
+
     def _check_echo(self, frame: bytes, sent_at: float) -> None:
         """Read back our own transmission (an echoing adapter); raise if it came back different."""
         deadline = sent_at + len(frame) * self.char_time + self.completion_margin + self.gap
@@ -250,7 +278,7 @@ class RtuLink:
             raise LinkBadFrame('the echo of the request differs (a collision, or no echo: '
                                'check transport.echo)', heard)
 
-    def _decode(self, data: bytes) -> ModbusPDU | None:
+    def _decode(self, data: bytes, size: int | None = None) -> ModbusPDU | None:
         """Return the PDU of exactly one well-formed frame (CRC checked), else None.
 
         pymodbus' frame decoder hunts over leading garbage and drops trailing
@@ -258,18 +286,19 @@ class RtuLink:
         and to end at the last byte, and then only the PDU is handed to pymodbus'
         PDU class. (Its ``handleFrame`` would check the CRC a second time and
         format the PDU for a debug log on every reply: a third of a
-        transaction's CPU at 115200 baud.)
+        transaction's CPU at 115200 baud.) ``size``: the length the header announced,
+        when the caller has it already.
         """
-        if len(data) < 4 or self._frame_size(data) != len(data):
+        if len(data) < 4 or (size if size is not None else self._frame_size(data)) != len(data):
             return None
-        if FramerRTU.compute_CRC(data[:-2]) != int.from_bytes(data[-2:], 'big'):
+        if crc16(data) != 0:        # a frame's CRC over the whole frame leaves 0
             return None
         function_code = data[1]
         try:
             if function_code & 0x80:
                 pdu = ExceptionResponse(function_code & 0x7F)
             else:
-                pdu_class = self._framer.decoder.lookupPduClass(data)
+                pdu_class = self._pdu_class(data)
                 if pdu_class is None:
                     return None
                 pdu = pdu_class()
@@ -284,55 +313,71 @@ class RtuLink:
         if len(header) < 2:
             return 0
         try:
-            pdu_class = self._framer.decoder.lookupPduClass(header)
+            pdu_class = self._pdu_class(header)
             size = pdu_class.calculateRtuFrameSize(header) if pdu_class else 0
         except Exception:  # noqa: BLE001 - an unknown or garbled header
             return 0
         return size if 4 <= size <= MAX_FRAME else 0
+
+    def _pdu_class(self, header: bytes) -> type[ModbusPDU] | None:
+        """Return pymodbus' ``lookupPduClass``, remembered per function code where it can be."""
+        function_code = header[1]
+        try:
+            return self._pdu_classes[function_code]
+        except KeyError:
+            pass
+        decoder = self._framer.decoder
+        pdu_class = decoder.lookupPduClass(header)
+        if function_code & 0x80 or function_code not in decoder.pdu_sub_table:
+            self._pdu_classes[function_code] = pdu_class   # (else: it names a sub-function)
+        return pdu_class
 
     def _write(self, frame: bytes) -> None:
         written = os.write(self._fd, frame)
         if written != len(frame) and self._serial is not None:
             self._serial.write(frame[written:])
 
-    def _read_frame(self, first_deadline: float, expected: int) -> bytes:
+    def _read_frame(self, first_deadline: float, expected: int) -> tuple[bytes, int]:
         """Read one frame: its first byte by ``first_deadline``, then its own length.
 
         The length comes from the frame's header once its first bytes are in
         (``expected`` until then); the rest must follow at the baud rate. Returns
-        b'' when nothing came, possibly an incomplete frame when the rest did not.
+        the bytes and the length their header announced (0: not known): b'' when
+        nothing came, possibly an incomplete frame when the rest did not.
         """
         fd = self._fd
-        data = b''
-        deadline = first_deadline
-        first_at = 0.0
+        remaining = first_deadline - time.monotonic()
+        if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
+            return b'', 0
+        data = os.read(fd, _HEADER)
+        if not data:
+            raise OSError('port closed')
+        first_at = last_at = time.monotonic()
         size = 0
         while True:
             # The header first, then exactly the announced rest: never read into
             # the frame that may follow (a late reply is followed by the real one).
-            target = size or (_HEADER if len(data) < _HEADER else expected)
-            if len(data) >= target:
+            size = size or self._frame_size(data)
+            missing = (size or (_HEADER if len(data) < _HEADER else expected)) - len(data)
+            if missing <= 0:
                 break
-            # Once a frame has begun, its rest has usually arrived with it: try the
-            # (non-blocking) read before paying for a select.
-            chunk = self._read_available(target - len(data)) if data else b''
+            # The rest has usually arrived with the header: try the (non-blocking)
+            # read before paying for a select.
+            chunk = self._read_available(missing)
             if not chunk:
-                remaining = deadline - time.monotonic()
+                # The rest follows at the baud rate; allow bursty USB adapters a margin.
+                remaining = first_at + max(size or expected, len(data)) * self.char_time \
+                    + self.completion_margin - time.monotonic()
                 if remaining <= 0 or not select.select([fd], [], [], remaining)[0]:
                     break
-                chunk = os.read(fd, target - len(data))
+                chunk = os.read(fd, missing)
                 if not chunk:
                     raise OSError('port closed')
-            self._last_byte_at = time.monotonic()
-            if not data:
-                first_at = self._last_byte_at
+            last_at = time.monotonic()
             data += chunk
-            size = size or self._frame_size(data)
-            # The rest follows at the baud rate; allow bursty USB adapters a margin.
-            deadline = first_at + max(size or expected, len(data)) * self.char_time \
-                + self.completion_margin
+        self._last_byte_at = last_at
         self._on_bytes(False, len(data))
-        return data
+        return data, size
 
     def _read_available(self, count: int) -> bytes:
         """Read up to ``count`` bytes that are already in; b'' if none are.
