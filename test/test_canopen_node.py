@@ -14,7 +14,7 @@ from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness
 from harness import wait_for
 from vfd_ros2.protocol.cia402 import State
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
-from vfd_ros2.transports.canopen import open_channels
+from vfd_ros2.transports.canopen import RepeatSummary, open_channels
 
 
 def test_command_status_and_watchdog(make_can_harness):
@@ -235,6 +235,7 @@ def test_a_flood_of_one_emcy_is_logged_once_and_kept_bounded(make_can_harness, c
     wheel = h.wheels[1]
     wheel.wait_status(lambda s: s.online, 5.0, 'online')
     transport = wheel.node.controller.drive.transport
+    wheel.node.controller.drive.emcy_log.period = 1.0    # repeats summed up 1 s on
     sender = can.Bus(interface='virtual', channel=h.channel)
     caplog.set_level('INFO', logger='vfd_ros2.drives.canopen')
     try:
@@ -244,7 +245,7 @@ def test_a_flood_of_one_emcy_is_logged_once_and_kept_bounded(make_can_harness, c
                                     is_extended_id=False))
         consumer = transport._links[1].node.emcy               # noqa: SLF001
         wait_for(lambda: not consumer.log, 5.0, 'the EMCYs taken by the drive loop')
-        time.sleep(0.2)                    # a few more cycles
+        time.sleep(1.2)                    # past the summary period
         status = wheel.wait_status(lambda s: s.online, 2.0, 'still online')
         assert not status.fault
         assert len(consumer.active) <= 8
@@ -268,7 +269,7 @@ def test_malformed_frames_are_counted_and_logged_once_per_cob_id(make_can_harnes
     wheel = h.wheels[1]
     wheel.wait_status(lambda s: s.online, 5.0, 'online')
     channel = wheel.node.controller.drive.transport.channel
-    channel.network.malformed.SUMMARY_PERIOD = 0.5
+    channel.network.malformed.repeats.period = 0.5
     caplog.set_level('WARNING')
     sender = can.Bus(interface='virtual', channel=h.channel)
 
@@ -452,3 +453,17 @@ def test_new_commands_wait_for_the_sync_cycle_but_a_watchdog_stop_does_not(make_
         listener.shutdown()
     # within command_timeout and a margin, not up to a cycle (0.25 s) later
     assert stopped_after < 0.5 + 0.1, stopped_after
+
+
+def test_repeat_summary_logs_each_kind_once_and_sums_the_rest_once_per_period():
+    lines = RepeatSummary(period=10.0, max_keys=2)
+    assert lines.first('a', 0.0) and lines.first('b', 1.0)
+    assert not lines.first('a', 2.0)            # a repeat
+    assert not lines.first('c', 3.0)            # a third kind: over max_keys, a repeat too
+    assert lines.due(10.5) == 0                 # 10 s after the last full line ('b' at 1.0)
+    assert lines.due(11.0) == 2
+    assert not lines.first('a', 12.0)
+    assert lines.due(20.9) == 0 and lines.due(21.0) == 1     # 10 s after the summary
+    assert lines.due(40.0) == 0                 # nothing new: no line
+    lines.forget()                              # the drive's error reset
+    assert lines.first('a', 41.0) and lines.first('c', 41.0)

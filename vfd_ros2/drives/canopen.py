@@ -43,7 +43,7 @@ from ..profiles import (
 from ..protocol.cia402 import State
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter
-from ..transports.canopen import SYNCHRONOUS_MAX, CanopenTransport, ObjectEntry
+from ..transports.canopen import SYNCHRONOUS_MAX, CanopenTransport, ObjectEntry, RepeatSummary
 from .base import (
     HOST_LOSS_JITTER,
     DriveOnLink,
@@ -57,10 +57,8 @@ log = logging.getLogger(__name__)
 
 #: the CiA 301 generic error code, used when a drive reports FAULT without a code
 GENERIC_ERROR = 0x1000
-#: distinct EMCYs logged between two error resets; repeats are summed up instead,
-#: at most once per period (s)
+#: distinct EMCYs logged between two error resets; repeats are summed up instead
 EMCY_LOGGED_MAX = 32
-EMCY_SUMMARY_PERIOD = 10.0
 #: a TPDO the drive sends at a known rate (each SYNC, or its event timer) is missing
 #: after this many of its periods, and at least TPDO_SLACK s more: its values are stale
 TPDO_PERIODS_MISSED = 3
@@ -160,9 +158,8 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
-        self._emcy_logged: set[tuple[int, int, bytes]] = set()
-        self._emcy_repeats = 0             # EMCYs not logged since the last summary
-        self._emcy_summary_at = 0.0
+        #: which EMCYs are logged in full (each distinct one until an error reset)
+        self.emcy_log = RepeatSummary(max_keys=EMCY_LOGGED_MAX)
 
     @property
     def state(self) -> State | None:
@@ -246,7 +243,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values.clear()
         self._last_controlword = None
         self._emcy_fault = NO_FAULT
-        self._emcy_logged.clear()
+        self.emcy_log.forget()
 
     def _write(self, obj: CanObject, raw: int) -> None:
         self.transport.write_object(self.unit_id, obj.index, obj.subindex, obj.type, raw)
@@ -511,28 +508,24 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
 
     def _take_emcy(self) -> None:
         new, active = self.transport.take_emcy(self.unit_id)
+        now = time.monotonic()
         for emcy in new:
             if not emcy.code & 0xFF00:
                 log.info('%s EMCY error reset', self.hardware_id)
-                self._emcy_logged.clear()
+                self.emcy_log.forget()
                 continue
             # Each distinct EMCY is logged once until the next error reset: a node that
             # repeats one (or floods the bus) must not flood the log.
-            key = (emcy.code, emcy.register, bytes(emcy.data))
-            if key in self._emcy_logged or len(self._emcy_logged) >= EMCY_LOGGED_MAX:
-                self._emcy_repeats += 1
+            if not self.emcy_log.first((emcy.code, emcy.register, bytes(emcy.data)), now):
                 continue
-            self._emcy_logged.add(key)
             info = self._describe_emcy(emcy)
             log.warning('%s EMCY 0x%04X (%s) register 0x%02X data %s: %s %s', self.hardware_id,
                         emcy.code, emcy.get_desc(), emcy.register, emcy.data.hex(' '),
                         info.display, info.name)
-        if self._emcy_repeats:
-            now = time.monotonic()
-            if now >= self._emcy_summary_at:
-                log.warning('%s: %d more EMCY frames, already logged since the last error '
-                            'reset', self.hardware_id, self._emcy_repeats)
-                self._emcy_repeats, self._emcy_summary_at = 0, now + EMCY_SUMMARY_PERIOD
+        repeats = self.emcy_log.due(now)
+        if repeats:
+            log.warning('%s: %d more EMCY frames, already logged since the last error reset',
+                        self.hardware_id, repeats)
         self._emcy_fault = self._describe_emcy(active[-1]) if active else NO_FAULT
 
     def _reading(self) -> Reading:

@@ -32,7 +32,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, NamedTuple
+from typing import Any, Callable, Hashable, Iterable, Mapping, NamedTuple
 
 import can
 import canopen
@@ -198,6 +198,47 @@ _OWN_ARGUMENTS = {'interface': 'transport.interface', 'channel': 'transport.chan
                   'bitrate': 'transport.bitrate'}
 
 
+class RepeatSummary:
+    """Which of a stream of repeating events to log: the first of each kind, then sums.
+
+    A babbling node repeats one frame (or one EMCY) without end; the log must
+    show each kind once and how often it came, not each frame. ``first(key)`` is
+    True for a key not seen since ``forget`` (while fewer than ``max_keys`` are
+    known); any other event is a repeat, and ``due()`` returns how many repeats
+    to sum up in one line, at most once per ``period`` s after the last line
+    (0 otherwise). Callers serialise the calls (a lock, or one thread).
+    """
+
+    def __init__(self, period: float = 10.0, max_keys: int | None = None) -> None:
+        self.period = period
+        self._max_keys = max_keys
+        self._seen: set[Hashable] = set()
+        self._repeats = 0
+        self._quiet_until = 0.0     # no summary line before this (monotonic s)
+
+    def first(self, key: Hashable, now: float) -> bool:
+        """Return whether to log this event in full; otherwise it is counted as a repeat."""
+        if key in self._seen or (self._max_keys is not None and
+                                 len(self._seen) >= self._max_keys):
+            self._repeats += 1
+            return False
+        self._seen.add(key)
+        self._quiet_until = max(self._quiet_until, now + self.period)
+        return True
+
+    def due(self, now: float) -> int:
+        """Return the repeats to sum up now (then counted afresh), or 0."""
+        if not self._repeats or now < self._quiet_until:
+            return 0
+        repeats, self._repeats = self._repeats, 0
+        self._quiet_until = now + self.period
+        return repeats
+
+    def forget(self) -> None:
+        """Log each kind in full once more (e.g. after the drive's error reset)."""
+        self._seen.clear()
+
+
 class MalformedFrames:
     """Frames the library could not take (an EMCY or heartbeat too short, ...), by node.
 
@@ -205,19 +246,15 @@ class MalformedFrames:
     text only ("unpack requires a buffer of 8 bytes"), naming neither the frame
     nor the node: a babbling node floods the console. Here the first frame of
     each COB-ID is logged with its bytes, repeats are summed up at most every
-    ``SUMMARY_PERIOD`` s, and each node's count reaches its transport's
+    ``repeats.period`` s, and each node's count reaches its transport's
     ``bad_frames`` (``take``).
     """
 
-    SUMMARY_PERIOD = 10.0
-
     def __init__(self, label: str = 'CAN') -> None:
         self.label = label          # the channel, in log lines
+        self.repeats = RepeatSummary()
         self._lock = threading.Lock()
-        self._seen: set[int] = set()
         self._untaken: dict[int, int] = {}       # node id -> frames not yet counted
-        self._repeats = 0
-        self._summary_due = 0.0
 
     def record(self, can_id: int, data: bytes, exc: Exception) -> None:
         """Count one frame the library raised on (its notifier thread)."""
@@ -225,21 +262,13 @@ class MalformedFrames:
         with self._lock:
             node = can_id & 0x7F
             self._untaken[node] = self._untaken.get(node, 0) + 1
-            first = can_id not in self._seen
-            if first:
-                self._seen.add(can_id)
-                self._summary_due = max(self._summary_due, now + self.SUMMARY_PERIOD)
-            else:
-                self._repeats += 1
-            summary = 0
-            if self._repeats and now >= self._summary_due:
-                summary, self._repeats = self._repeats, 0
-                self._summary_due = now + self.SUMMARY_PERIOD
+            first = self.repeats.first(can_id, now)
+            summary = self.repeats.due(now)
         if first:
             log.warning('%s: malformed frame 0x%03X [%d] %s from node %d ignored (%s); '
                         'repeats are summed up every %g s', self.label, can_id,
                         len(data), bytes(data).hex(' ') or '-', node, exc,
-                        self.SUMMARY_PERIOD)
+                        self.repeats.period)
         if summary:
             log.warning('%s: %d more malformed frames ignored', self.label, summary)
 
