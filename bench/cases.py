@@ -34,6 +34,7 @@ from std_msgs.msg import Float64
 
 from vfd_ros2.control.bus import Bus, parse_bus_config
 from vfd_ros2.control.factory import build_controller
+from vfd_ros2.control.state import RunState
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
@@ -800,6 +801,61 @@ def io_floor(profile_name: str, units: int, window: float,
             'cpu_percent_per_drive': round(cpu_percent / units, 2),
             'approx_cycles_per_s': round(cycle / elapsed, 1),
             'target_percent_per_drive': 3.0 if units > 1 else 5.0}
+
+
+def interpreted_steps(profile_name: str, units: int, cycles: int = 200) -> dict[str, Any]:
+    """Count the bytecode instructions the control loop runs per drive-cycle.
+
+    A bus of ``units`` drives in this process (the Bus alone, no ROS node) runs
+    ``cycles`` back-to-back cycles against the simulator with ``sys.settrace``
+    counting every opcode of every Python frame. Unlike CPU time it does not move
+    with the host (steal, cold caches), so it tells whether a change to the cycle's
+    Python made it cheaper. Returns the total and the functions that run most.
+    """
+    port = _port_path('steps')
+    link = {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.timeout': 0.1,
+            'transport.frame_gap': 0.0}
+    document = _bus_document('steps', profile_name, units, link, 50.0)
+    for settings in document['drives'].values():
+        del settings['namespace']
+    counts: dict[str, int] = {}
+
+    def trace(frame: Any, event: str, _arg: Any) -> Any:
+        frame.f_trace_opcodes = True
+        if event == 'opcode':
+            code = frame.f_code
+            path = Path(code.co_filename)    # '<string>': a dataclass's generated __init__
+            key = f'{path.parent.name}/{path.name}:{code.co_name}' if path.parent.name \
+                else f'dataclass {code.co_name}'
+            counts[key] = counts.get(key, 0) + 1
+        return trace
+
+    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
+        wait_port(port)
+        bus = Bus(parse_bus_config(document))
+        controllers = list(bus.controllers.values())
+        try:
+            def cycle() -> None:
+                for controller in controllers:
+                    controller.command_velocity(1.0)
+                bus.step()
+            wait_for(lambda: (cycle(), all(c.state.run_state is RunState.RUNNING
+                                            for c in controllers))[1], 10.0, 'drives running')
+            for _ in range(20):
+                cycle()
+            sys.settrace(trace)
+            try:
+                for _ in range(cycles):
+                    cycle()
+            finally:
+                sys.settrace(None)
+        finally:
+            bus.finish()
+    per_cycle = units * cycles
+    top = sorted(counts.items(), key=lambda item: -item[1])[:8]
+    return {'profile': profile_name, 'drives': units, 'cycles': cycles,
+            'steps_per_drive_cycle': round(sum(counts.values()) / per_cycle),
+            'top': [(name, round(count / per_cycle)) for name, count in top]}
 
 
 def fleet(profile_name: str, units: int, framing: Framing, window: float,

@@ -162,6 +162,20 @@ def render_table(results: dict[str, Any]) -> str:
                           'process CPU µs per Modbus transaction', 'RSS MB',
                           'target per drive'], rows))
     rows = []
+    for r in results.get('steps', []):
+        if 'error' in r:
+            rows.append([r['case'], 'error: ' + r['error'], ''])
+            continue
+        rows.append([str(r['drives']), str(r['steps_per_drive_cycle']),
+                     ', '.join(f'{name} {count}' for name, count in r['top'][:5])])
+    if rows:
+        parts.append('**5a. Interpreted steps** (the same cycle in the bench process: a Bus of '
+                     'boneng_am drives, no ROS node, back to back against the simulator; '
+                     "bytecode instructions counted with sys.settrace: unlike CPU time, the "
+                     "host's steal and cold caches do not move it)\n\n"
+                     + _table(['drives', 'steps per drive-cycle', 'most steps in (per '
+                               'drive-cycle)'], rows))
+    rows = []
     for r in results.get('fleet', []):
         if 'error' in r:
             rows.append([r['case'], 'error: ' + r['error']] + [''] * 9)
@@ -318,9 +332,12 @@ BOUNDS = """### Targets and what bounds them
   process of its own (a bus_node), as on a robot; before, it shared the bench's process
   and GIL with the publishing loop. The p99 sits at the target and moves with the host:
   five runs of the 115200 row that evening gave 7.08-7.69 ms at 0.1-0.6 % host steal and
-  8.99 ms at 4 % (the in-process design, alternated with it: 6.69-7.48 ms). Shorter status
-  reads lower the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no
-  such serialisation.
+  8.99 ms at 4 % (the in-process design, alternated with it: 6.69-7.48 ms); the re-run of
+  2026-11-24 (0.14 % steal, the cheaper RTU cycle of section 5) gave 7.05 ms at 115200 and
+  19.78 ms at 19200, 0.03 ms over each target (19.73 ms, met, the night before): fewer
+  interpreted steps per transaction did not move the tail, which is the wire's and the
+  wake-ups'. Shorter status reads lower the worst case (profile `every:` /
+  `max_read_registers`); Modbus TCP has no such serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met on a quiet host (the
   CANopen re-run of 2026-11-23 night: 0 missed at both priorities, 0.05 % steal); runs with
   host steal miss a few to a few dozen.** The table puts the previous design (a
@@ -347,10 +364,11 @@ BOUNDS = """### Targets and what bounds them
   reconnect: `connections`), and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
   SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
-  met; half the previous design's.** The executables spin rclpy's `EventsExecutor`
-  (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured side
-  by side): the single-threaded one rebuilt its wait set from every entity on every
-  wake-up (py-spy: ~80 % of a 32-drive bus_node). The wheel's events executor does not
+  met: 3.8 % and 6.9 % (4.5 and 7.4 before 2026-11-24); half the previous design's.** The
+  executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
+  previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
+  rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
+  bus_node). The wheel's events executor does not
   await coroutine callbacks (ros2/rclpy#1473), so the drive services are answered from
   the control thread (`ros/deferred_service.py`), and a bus publishes every drive's
   status and diagnostics from one timer per rate. The control loops name their OS thread
@@ -358,26 +376,34 @@ BOUNDS = """### Targets and what bounds them
   for one drive and ~4 % for four — rclpy's own cost per message (a bare Float64
   subscription at 200 Hz costs ~280 µs of CPU per message in the executor and Fast DDS
   threads with the events executor, ~760 µs with the single-threaded one), here 50
-  commands/s per drive plus 20 Hz status. The rest is the control thread, and it is Python,
-  not I/O: the rows "the same I/O alone" send the same frames to the same simulator at the
-  same pace, each reply read by its length and not decoded, and cost ~0.6 % of a core per
-  drive with four drives (~20-40 µs of CPU per transaction: the pty's system calls and the
-  wake-ups); the control thread costs ~100-130 µs per transaction. `perf` on the control
-  thread (2026-11-23 night, four drives) put ~70 % of its samples in the interpreter
-  (`libpython`), ~26 % in the kernel. Where that Python goes, per drive-cycle: the RTU
-  link's framing and checks around each of the ~5.4 transactions (~30 µs each in a tight
-  loop: pymodbus builds and decodes the PDUs, the CRC is computed in Python, three
-  `select`s keep t3.5 and look for stray bytes), decoding 13 values and 6 flags, the
-  state snapshot the node publishes, the run/stop decision and the watchdog; and it runs
-  about twice as slow at 50 Hz as in a tight loop (caches cold after each 20 ms sleep; the
-  in-process cycle measured 500 µs of CPU per drive-cycle back to back, 1170 µs paced).
-  Meeting 3 % would take the interpreted part down by ~40 %: a compiled link layer, or
-  fewer transactions per cycle (the profile's `every:` for slow values, a drive that
-  allows longer reads); a faster executor would not do it.
+  commands/s per drive plus 20 Hz status. The rest is the control thread, and most of it is
+  Python, not I/O: the rows "the same I/O alone" send the same frames to the same simulator
+  at the same pace, each reply read by its length and not decoded, and cost ~0.6 % of a core
+  per drive with four drives (~20-40 µs of CPU per transaction: the pty's system calls and
+  the wake-ups); the control thread costs ~100 µs per transaction. `perf` on the control
+  thread (2026-11-24, four drives) put ~64 % of its samples in the interpreter (`libpython`)
+  and ~31 % in the kernel (14 points of it in returning from the context switch of each
+  blocking wait for a reply). Section 5a counts the cycle's Python in bytecode steps, which
+  the host's steal and cold caches do not move: 12658 steps per drive-cycle before
+  2026-11-24, 8891 after. Read requests and their frames are now built once and reused, a
+  reply's CRC is checked two bytes per step (`vfd_ros2/protocol/modbus_crc.py`, tested
+  against pymodbus' own; pymodbus' byte loop was 16 % of the steps), pymodbus' PDU class is
+  looked up once per function code, a reply's length is taken from its header once, and
+  error texts are built only for errors. Interleaved A/B runs of the bus_node process, old
+  and new code, three each: the control thread went from 12.3-13.3 to 10.5-11.7 % of a core.
+  30 % fewer steps made it only ~13 % cheaper, because the rest of its cost does not shrink
+  with the steps: the kernel's share, and the interpreter running cold after each 20 ms
+  sleep (in-process, before these changes: 500 µs of CPU per drive-cycle back to back, 1170
+  µs paced at 50 Hz). What is left is spread thin: decoding 13 values and 6 flags (`poll`,
+  ~1000 steps), the link's framing and checks (~2500 over the ~5.4 transactions), pymodbus'
+  reply PDUs (~900), the state snapshot the node publishes (~800), the run/stop decision and
+  the watchdog. Meeting 3 % would take the control thread down by another third: a compiled
+  link layer, or fewer transactions per cycle (the profile's `every:` for slow values, a
+  drive that allows longer reads); a faster executor would not do it.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
-  host (91.5 % in the re-run of 2026-11-23 night; 89.3 % at normal priority), 87-90 % in
-  the full runs of that day with host steal.** Before the executor change
+  host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
+  priority), 87-90 % in the full runs of 2026-11-23 with host steal.** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the

@@ -95,6 +95,9 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
     # The same I/O without the driver: what any driver doing it pays on this machine.
     cpu += [(f'cpu io floor x{units}', lambda u=units: cases.io_floor('boneng_am', u, cpu_window))
             for units in (1, 4)]
+    # The cycle's Python, counted in bytecode steps: a figure the host's noise does not move.
+    steps = [(f'steps x{units}', lambda u=units: cases.interpreted_steps(
+        'boneng_am', u, 50 if quick else 200)) for units in (1, 4)]
     fleet_units = 8 if quick else 32
     # The bus's control thread at normal priority, and at the realtime priority a
     # robot would give it (bus config realtime_priority).
@@ -103,7 +106,7 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
         realtime_priority=p)) for priority in (0, 50)]
     return {'bus_efficiency': efficiency, 'software_floor': floor,
             'command_latency': latency, 'adapters': adapters, 'watchdog': watchdog, 'cpu': cpu,
-            'fleet': fleet}
+            'steps': steps, 'fleet': fleet}
 
 
 def canopen_section(quick: bool) -> dict[str, Any]:

@@ -88,3 +88,14 @@ def test_the_io_floor_sends_the_drives_cycles_at_their_pace():
     assert abs(per_cycle - 10.8) < 0.5, row
     assert 0 < row['cpu_percent'] < 100, row
     assert 'the same I/O alone, no driver' in render_table({'cpu': [dict(row, case='x')]})
+
+
+def test_interpreted_steps_count_the_cycles_python_and_name_where_it_goes():
+    from bench import cases
+    row = cases.interpreted_steps('boneng_am', 2, cycles=10)
+    # A cycle runs thousands of bytecode steps per drive (8-9k on 2026-11-24); 0 or a
+    # few would mean the trace saw nothing, 10x more that it counted the simulator.
+    assert 2000 < row['steps_per_drive_cycle'] < 40000, row
+    names = [name for name, _ in row['top']]
+    assert any(name.startswith('transports/rtu_link.py:') for name in names), names
+    assert 'Interpreted steps' in render_table({'steps': [dict(row, case='x')]})
