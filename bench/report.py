@@ -363,43 +363,44 @@ BOUNDS = """### Targets and what bounds them
   VM is descheduled. 8 drives at 500 Hz: neither process keeps up here (drives time out and
   reconnect: `connections`), and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
   SYNC would exceed the bus's capacity anyway (`load % 1M`).
-- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not
-  met: 3.8 % and 6.9 % (4.5 and 7.4 before 2026-11-24); half the previous design's.** The
+- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not met:
+  3.8 % and 6.9 % (4.5 and 7.4 before 2026-11-24); half the previous design's.** The
   executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
   previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
   rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
-  bus_node). The wheel's events executor does not
-  await coroutine callbacks (ros2/rclpy#1473), so the drive services are answered from
-  the control thread (`ros/deferred_service.py`), and a bus publishes every drive's
-  status and diagnostics from one timer per rate. The control loops name their OS thread
-  (`vfd bus ...`), so the table splits the process: the executor side is ~2.5 % of a core
-  for one drive and ~4 % for four — rclpy's own cost per message (a bare Float64
-  subscription at 200 Hz costs ~280 µs of CPU per message in the executor and Fast DDS
-  threads with the events executor, ~760 µs with the single-threaded one), here 50
-  commands/s per drive plus 20 Hz status. The rest is the control thread, and most of it is
-  Python, not I/O: the rows "the same I/O alone" send the same frames to the same simulator
-  at the same pace, each reply read by its length and not decoded, and cost ~0.6 % of a core
-  per drive with four drives (~20-40 µs of CPU per transaction: the pty's system calls and
-  the wake-ups); the control thread costs ~100 µs per transaction. `perf` on the control
-  thread (2026-11-24, four drives) put ~64 % of its samples in the interpreter (`libpython`)
-  and ~31 % in the kernel (14 points of it in returning from the context switch of each
-  blocking wait for a reply). Section 5a counts the cycle's Python in bytecode steps, which
-  the host's steal and cold caches do not move: 12658 steps per drive-cycle before
-  2026-11-24, 8891 after. Read requests and their frames are now built once and reused, a
-  reply's CRC is checked two bytes per step (`vfd_ros2/protocol/modbus_crc.py`, tested
-  against pymodbus' own; pymodbus' byte loop was 16 % of the steps), pymodbus' PDU class is
-  looked up once per function code, a reply's length is taken from its header once, and
-  error texts are built only for errors. Interleaved A/B runs of the bus_node process, old
-  and new code, three each: the control thread went from 12.3-13.3 to 10.5-11.7 % of a core.
-  30 % fewer steps made it only ~13 % cheaper, because the rest of its cost does not shrink
-  with the steps: the kernel's share, and the interpreter running cold after each 20 ms
-  sleep (in-process, before these changes: 500 µs of CPU per drive-cycle back to back, 1170
-  µs paced at 50 Hz). What is left is spread thin: decoding 13 values and 6 flags (`poll`,
+  bus_node). The wheel's events executor does not await coroutine callbacks
+  (ros2/rclpy#1473), so the drive services are answered from the control thread
+  (`ros/deferred_service.py`), and a bus publishes every drive's status and diagnostics
+  from one timer per rate. The control loops name their OS thread (`vfd bus ...`), so the
+  table splits the process: the executor side is ~2.5 % of a core for one drive and ~4 %
+  for four — rclpy's own cost per message (a bare Float64 subscription at 200 Hz costs ~280
+  µs of CPU per message in the executor and Fast DDS threads with the events executor, ~760
+  µs with the single-threaded one), here 50 commands/s per drive plus 20 Hz status. The
+  rest is the control thread, and most of it is Python, not I/O: the rows "the same I/O
+  alone" send the same frames to the same simulator at the same pace, each reply read by
+  its length and not decoded, and cost ~0.6 % of a core per drive with four drives (~20-40
+  µs of CPU per transaction: the pty's system calls and the wake-ups); the control thread
+  costs ~100 µs per transaction. `perf` on the control thread (2026-11-24, four drives) put
+  ~64 % of its samples in the interpreter (`libpython`) and ~31 % in the kernel (14 points
+  of it in returning from the context switch of each blocking wait for a reply). Section 5a
+  counts the cycle's Python in bytecode steps, which the host's steal and cold caches do
+  not move: 12658 steps per drive-cycle before 2026-11-24, 9334 after. Read requests and
+  their frames are now built once and reused, a reply's CRC is checked two bytes per step
+  (`vfd_ros2/protocol/modbus_crc.py`, tested against pymodbus' own; pymodbus' byte loop was
+  16 % of the steps), pymodbus' PDU class is looked up once per function code, a reply's
+  length is taken from its header once, and error texts are built only for errors.
+  Interleaved A/B runs of the bus_node process, old and new code, three each: the control
+  thread went from 12.3-13.3 to 10.5-11.7 % of a core. 30 % fewer steps (8891: those runs
+  and section 5 also counted transactions inline, since put back on the transport's one
+  `count`) made it only ~13 % cheaper, because the rest of its cost does not shrink with
+  the steps: the kernel's share, and the interpreter running cold after each 20 ms sleep
+  (in-process, before these changes: 500 µs of CPU per drive-cycle back to back, 1170 µs
+  paced at 50 Hz). What is left is spread thin: decoding 13 values and 6 flags (`poll`,
   ~1000 steps), the link's framing and checks (~2500 over the ~5.4 transactions), pymodbus'
-  reply PDUs (~900), the state snapshot the node publishes (~800), the run/stop decision and
-  the watchdog. Meeting 3 % would take the control thread down by another third: a compiled
-  link layer, or fewer transactions per cycle (the profile's `every:` for slow values, a
-  drive that allows longer reads); a faster executor would not do it.
+  reply PDUs (~900), the state snapshot the node publishes (~800), the run/stop decision
+  and the watchdog. Meeting 3 % would take the control thread down by another third: a
+  compiled link layer, or fewer transactions per cycle (the profile's `every:` for slow
+  values, a drive that allows longer reads); a faster executor would not do it.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal

@@ -92,12 +92,9 @@ class _ModbusTransport(RegisterTransport):
     def _execute(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self.open()
         unit = request.dev_id
-        link, own = self.stats, self.stats_for(unit)
-        link.frames_sent += 1
-        own.frames_sent += 1
+        self.count(unit, 'frames_sent')
         reply = self._exchange(request, reply_bytes)
-        link.frames_received += 1
-        own.frames_received += 1
+        self.count(unit, 'frames_received')
         if (reply.function_code & 0x7F) != request.function_code:
             # pymodbus pairs a TCP reply by transaction id alone and decodes whatever
             # function it names: a reply to another function is not this one's value.
@@ -117,10 +114,6 @@ class _ModbusTransport(RegisterTransport):
         self.count(request.dev_id, 'bad_frames')
         return BadFrame(f'{self._what(request)}: {problem}')
 
-    def _count_transaction(self, unit: int) -> None:
-        self.stats.transactions += 1
-        self.stats_for(unit).transactions += 1
-
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
         key = (unit, address, count)
         request = self._read_requests.get(key)
@@ -132,7 +125,7 @@ class _ModbusTransport(RegisterTransport):
         registers = self._execute(request, reply_size(3, count)).registers
         if len(registers) != count:
             raise self._mismatch(request, f'got {len(registers)} registers')
-        self._count_transaction(unit)
+        self.count(unit, 'transactions')
         return list(registers)
 
     def write_register(self, unit: int, address: int, value: int) -> None:
@@ -145,7 +138,7 @@ class _ModbusTransport(RegisterTransport):
             # not this write's reply (or the drive did not store the value).
             shown = 'nothing' if echoed is None else f'{echoed:#06x}'
             raise self._mismatch(request, f'echo names {shown} @ {reply.address:#06x}')
-        self._count_transaction(unit)
+        self.count(unit, 'transactions')
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
         request = WriteMultipleRegistersRequest(
@@ -154,7 +147,7 @@ class _ModbusTransport(RegisterTransport):
         if reply.address != address or reply.count != len(values):
             raise self._mismatch(request,
                                  f'reply names {reply.count} @ {reply.address:#06x}')
-        self._count_transaction(unit)
+        self.count(unit, 'transactions')
 
 
 class _PymodbusTransport(_ModbusTransport):
