@@ -286,21 +286,22 @@ own response delay is 0. Figures compare only within one run on one machine.
 
 BOUNDS = """### Targets and what bounds them
 
-- **Bus efficiency (≥ 90 % at 115200 with 1 and 4 drives, ≥ 95 % at 19200 and below).**
-  RTU transactions run on `vfd_ros2/transports/rtu_link.py`: pymodbus' `FramerRTU` and PDU
+- **Bus efficiency (≥ 90 % at 115200 with 1 and 4 drives, ≥ 95 % at 19200 and below).** RTU
+  transactions run on `vfd_ros2/transports/rtu_link.py`: pymodbus' `FramerRTU` and PDU
   classes over pyserial (byte-identical frames), the reply read by its known length in
   `select` with deadlines from the baud rate, t3.5 of silence kept before each request. A
   checked reply goes straight to its PDU class (pymodbus' `handleFrame` checked the CRC a
   second time and formatted every PDU for a debug log: a third of a transaction's CPU), and
   the rest of a frame is read without a `select` when it is already in (software floor:
-  ~65-100 µs of CPU per transaction, ~100-120 before). What is left to the wire's limit is
-  turnaround per transaction: scheduler wake-ups on both sides (the master seeing the
-  reply's last byte, the slave seeing the request) and the GIL hand-over from the rclpy
-  executor thread. The simulator's own share is measured now (`simulator late µs`: how
-  late it handed over a reply's last byte; it runs at SCHED_FIFO, as it stands in for
-  hardware, which took 50-100 µs off each turnaround); the GIL switch interval is 0.1 ms
-  (the fleet case below gained ~3 points with it in back-to-back runs). What moves
-  the cycle rate further is fewer transactions, not a faster stack: the BONENG AM allows 5
+  ~65-100 µs of CPU per transaction, ~100-120 before; 66 µs on 2026-11-24 with the cheaper
+  cycle of section 5: reads built once, the CRC two bytes per step). What is left to the
+  wire's limit is turnaround per transaction: scheduler wake-ups on both sides (the master
+  seeing the reply's last byte, the slave seeing the request) and the GIL hand-over from
+  the rclpy executor thread. The simulator's own share is measured now (`simulator late
+  µs`: how late it handed over a reply's last byte; it runs at SCHED_FIFO, as it stands in
+  for hardware, which took 50-100 µs off each turnaround); the GIL switch interval is 0.1
+  ms (the fleet case below gained ~3 points with it in back-to-back runs). What moves the
+  cycle rate further is fewer transactions, not a faster stack: the BONENG AM allows 5
   registers per read and no reads across undocumented addresses, so a cycle is 1 write +
   4-6 reads (`frames/drive-cycle`), and above 19200 baud the spec's fixed 1.75 ms t3.5 is
   ~2/3 of every transaction. Four AM drives on one 115200 line get ~8-9 full cycles/s each
