@@ -385,7 +385,7 @@ BOUNDS = """### Targets and what bounds them
   ~64 % of its samples in the interpreter (`libpython`) and ~31 % in the kernel (14 points
   of it in returning from the context switch of each blocking wait for a reply). Section 5a
   counts the cycle's Python in bytecode steps, which the host's steal and cold caches do
-  not move: 12658 steps per drive-cycle before 2026-11-24, 9334 after. Read requests and
+  not move: 12658 steps per drive-cycle before 2026-11-24, 9320 after. Read requests and
   their frames are now built once and reused, a reply's CRC is checked two bytes per step
   (`vfd_ros2/protocol/modbus_crc.py`, tested against pymodbus' own; pymodbus' byte loop was
   16 % of the steps), pymodbus' PDU class is looked up once per function code, a reply's

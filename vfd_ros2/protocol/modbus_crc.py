@@ -30,7 +30,7 @@ def _word_table() -> array:
 
     Processing bytes b0, b1 from register r equals processing two zero bytes
     from r ^ (b0 | b1 << 8): the CRC is linear, and the two bytes meet the
-    register's low and high byte in turn. Built once (~30 ms), 128 KB.
+    register's low and high byte in turn. Built once (10-30 ms), 128 KB.
     """
     byte = _BYTES
     table = array('H', bytes(2 * 65536))

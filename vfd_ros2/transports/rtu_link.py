@@ -120,9 +120,8 @@ class RtuLink:
         # function code -> PDU class, for the codes without sub-functions (pymodbus'
         # lookupPduClass costs as much as the rest of sizing a frame, three times a reply)
         self._pdu_classes: dict[int, type[ModbusPDU] | None] = {}
-        # id(request) -> (request, frame) of the read requests the transport reuses;
-        # the entry holds the request, so its id cannot be taken by another object
-        self._frames: dict[int, tuple[ModbusPDU, bytes]] = {}
+        # (unit, address, count) -> the frame of that read request (reads repeat each cycle)
+        self._frames: dict[tuple[int, int, int], bytes] = {}
         self._serial: serial.Serial | None = None
         self._fd = -1
         self._quiet_from = 0.0     # monotonic time from which the line may be used again
@@ -246,18 +245,16 @@ class RtuLink:
     def _frame(self, request: ModbusPDU) -> bytes:
         """Return the frame of ``request``: built once for a read, which repeats.
 
-        The transport hands over the same read request object each cycle
-        (``_ModbusTransport.read_registers``); PDUs are not changed once built.
+        A read's frame follows from its unit, address and count alone.
         """
         if request.function_code != 3:
             return self._framer.buildFrame(request)
-        kept = self._frames.get(id(request))
-        if kept is not None and kept[0] is request:
-            return kept[1]
-        if len(self._frames) >= FRAMES_KEPT:
-            self._frames.clear()
-        frame = self._framer.buildFrame(request)
-        self._frames[id(request)] = (request, frame)
+        key = (request.dev_id, request.address, request.count)
+        frame = self._frames.get(key)
+        if frame is None:
+            if len(self._frames) >= FRAMES_KEPT:
+                self._frames.clear()
+            frame = self._frames[key] = self._framer.buildFrame(request)
         return frame
 
     def _check_echo(self, frame: bytes, sent_at: float) -> None:
