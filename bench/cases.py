@@ -673,6 +673,23 @@ def bus_node_process(document: dict[str, Any], units: int, tag: str,
                          tag, command_rate, executor, files={'bus.yaml': document})
 
 
+def drive_node_process(document: dict[str, Any], tag: str,
+                       executor: str = 'events') -> DriverProcess:
+    """Run the first drive of a bus ``document`` as a drive_node in its own process.
+
+    Its settings and the bus's link and control rate become the node's parameters;
+    it takes the name the bus would give it (``/<tag>/d1/drive``).
+    """
+    bus = document['bus']
+    settings = {key: value for key, value in bus.items() if key != 'name'}
+    settings.update(next(iter(document['drives'].values())))
+    namespace = settings.pop('namespace')
+    return DriverProcess('vfd_ros2.ros.drive_node',
+                         ['-r', f'__ns:={namespace}', '-r', '__node:=drive',
+                          '--params-file', '{dir}/params.yaml'], 1, tag, executor=executor,
+                         files={'params.yaml': {'/**': {'ros__parameters': settings}}})
+
+
 def _bus_document(tag: str, profile_name: str, units: int, link: dict[str, Any],
                   control_rate: float) -> dict[str, Any]:
     drives = {f'd{u}': {'namespace': f'/{tag}/d{u}', 'drive.profile': profile_name,
@@ -707,11 +724,13 @@ def _cpu_window(bus: DriverProcess, window: float,
 
 
 def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
-              profile_with_pyspy: bool = False, executor: str = 'events') -> dict[str, Any]:
-    """bus_node in its own process at 50 Hz with status publishing: CPU % and RSS.
+              profile_with_pyspy: bool = False, executor: str = 'events',
+              node: str = 'bus_node') -> dict[str, Any]:
+    """Measure the driver in its own process at 50 Hz with status publishing: CPU %, RSS.
 
     ``executor``: ``events`` (what ships) or ``single`` (the previous design's
-    SingleThreadedExecutor, for the side-by-side figure).
+    SingleThreadedExecutor, for the side-by-side figure). ``node``: ``bus_node``
+    (the drives of one line in one node) or ``drive_node`` (one drive, ``units`` 1).
     """
     port = _port_path('cpu')
     tag = f'c{uuid.uuid4().hex[:6]}'
@@ -720,11 +739,17 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
     link = {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.timeout': 0.1,
             'transport.frame_gap': 0.0}
     result: dict[str, Any] = {'profile': profile_name, 'drives': units, 'executor': executor,
-                              'control_rate_hz': control_rate, 'status_rate_hz': 20.0}
+                              'node': node, 'control_rate_hz': control_rate,
+                              'status_rate_hz': 20.0}
+    document = _bus_document(tag, profile_name, units, link, control_rate)
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
         wait_port(port)
-        bus = bus_node_process(_bus_document(tag, profile_name, units, link, control_rate),
-                               units, tag, executor=executor)
+        if node == 'drive_node':
+            if units != 1:
+                raise ValueError('a drive_node drives one drive')
+            bus = drive_node_process(document, tag, executor=executor)
+        else:
+            bus = bus_node_process(document, units, tag, executor=executor)
         try:
             bus.wait_all_running(30.0)
             bus.spin_for(1.0)

@@ -139,7 +139,9 @@ def render_table(results: dict[str, Any]) -> str:
             rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
             continue
         threads = r.get('cpu_percent_by_thread', {})
-        rows.append([EXECUTORS.get(r.get('executor', 'single'), '?'), str(r['drives']),
+        design = EXECUTORS.get(r.get('executor', 'single'), '?') + \
+            (', a drive_node' if r.get('node') == 'drive_node' else '')
+        rows.append([design, str(r['drives']),
                      _fmt(r['approx_cycles_per_s'], 1), _fmt(r['cpu_percent'], 1),
                      _fmt(r['cpu_percent_per_drive'], 1), _fmt(threads.get('control loop'), 1),
                      _fmt(threads.get('python'), 1),
@@ -151,7 +153,8 @@ def render_table(results: dict[str, Any]) -> str:
                      + _verdict(r['cpu_percent_per_drive'], r['target_percent_per_drive'],
                                 False)])
     if rows:
-        parts.append('**5. CPU and memory** (bus_node process, boneng_am, 50 Hz control, '
+        parts.append('**5. CPU and memory** (the bus_node process, or a drive_node where '
+                     'named, boneng_am, 50 Hz control, '
                      '20 Hz status, commands at 50 Hz; no wire time, so the figure is the '
                      "driver's own cost; the floor rows: one bench thread sending the same "
                      'frames at the same pace, replies read by length, not decoded)\n\n'

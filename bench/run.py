@@ -92,6 +92,9 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
     cpu = [(f'cpu x{units} {executor}', lambda u=units, e=executor: cases.cpu_usage(
         'boneng_am', u, cpu_window, profile_with_pyspy=not quick and e == 'events',
         executor=e)) for executor in ('single', 'events') for units in (1, 4)]
+    # The issue's single-drive target names a drive_node: one drive, a node of its own.
+    cpu.append(('cpu x1 drive_node events', lambda: cases.cpu_usage(
+        'boneng_am', 1, cpu_window, node='drive_node')))
     # The same I/O without the driver: what any driver doing it pays on this machine.
     cpu += [(f'cpu io floor x{units}', lambda u=units: cases.io_floor('boneng_am', u, cpu_window))
             for units in (1, 4)]

@@ -99,3 +99,14 @@ def test_interpreted_steps_count_the_cycles_python_and_name_where_it_goes():
     names = [name for name, _ in row['top']]
     assert any(name.startswith('transports/rtu_link.py:') for name in names), names
     assert 'Interpreted steps' in render_table({'steps': [dict(row, case='x')]})
+
+
+def test_the_cpu_case_runs_a_drive_node_of_its_own():
+    """The single-drive CPU row: a drive_node process, fed commands, cycling at 50 Hz."""
+    from bench import cases
+    row = cases.cpu_usage('boneng_am', 1, 1.0, node='drive_node')
+    assert row['node'] == 'drive_node'
+    # (approximate over one second: a slow read every 5th cycle, a preempting command)
+    assert 40 <= row['approx_cycles_per_s'] <= 60, row
+    assert row['comm_errors'] == 0 and 0 < row['cpu_percent'] < 100, row
+    assert 'EventsExecutor, a drive_node' in render_table({'cpu': [dict(row, case='x')]})
