@@ -297,21 +297,22 @@ BOUNDS = """### Targets and what bounds them
   second time and formatted every PDU for a debug log: a third of a transaction's CPU), and
   the rest of a frame is read without a `select` when it is already in (software floor:
   ~65-100 µs of CPU per transaction, ~100-120 before; 66 µs on 2026-11-24 with the cheaper
-  cycle of section 5: reads built once, the CRC two bytes per step). What is left to the
-  wire's limit is turnaround per transaction: scheduler wake-ups on both sides (the master
-  seeing the reply's last byte, the slave seeing the request) and the GIL hand-over from
-  the rclpy executor thread. The simulator's own share is measured now (`simulator late
-  µs`: how late it handed over a reply's last byte; it runs at SCHED_FIFO, as it stands in
-  for hardware, which took 50-100 µs off each turnaround); the GIL switch interval is 0.1
-  ms (the fleet case below gained ~3 points with it in back-to-back runs). What moves the
-  cycle rate further is fewer transactions, not a faster stack: the BONENG AM allows 5
-  registers per read and no reads across undocumented addresses, so a cycle is 1 write +
-  4-6 reads (`frames/drive-cycle`), and above 19200 baud the spec's fixed 1.75 ms t3.5 is
-  ~2/3 of every transaction. Four AM drives on one 115200 line get ~8-9 full cycles/s each
-  (`wire max`); 50 Hz needs one drive per line or slower status polling (`every:` in the
-  profile). The figures move with the machine: on this VM the host takes CPU time from it
-  at times (steal, in the footer), and two full runs on 2026-11-23 during heavy steal gave
-  68-84 % at 115200 with one drive, the simulator itself 170-480 µs late per reply.
+  cycle of section 5: reads built once, the CRC two bytes per step; 49 µs in the quiet full
+  run of 2026-11-26). What is left to the wire's limit is turnaround per transaction:
+  scheduler wake-ups on both sides (the master seeing the reply's last byte, the slave
+  seeing the request) and the GIL hand-over from the rclpy executor thread. The simulator's
+  own share is measured now (`simulator late µs`: how late it handed over a reply's last
+  byte; it runs at SCHED_FIFO, as it stands in for hardware, which took 50-100 µs off each
+  turnaround); the GIL switch interval is 0.1 ms (the fleet case below gained ~3 points
+  with it in back-to-back runs). What moves the cycle rate further is fewer transactions,
+  not a faster stack: the BONENG AM allows 5 registers per read and no reads across
+  undocumented addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and
+  above 19200 baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM
+  drives on one 115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive
+  per line or slower status polling (`every:` in the profile). The figures move with the
+  machine: on this VM the host takes CPU time from it at times (steal, in the footer), and
+  two full runs on 2026-11-23 during heavy steal gave 68-84 % at 115200 with one drive, the
+  simulator itself 170-480 µs late per reply.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -322,29 +323,32 @@ BOUNDS = """### Targets and what bounds them
   framer for the frame size after the first bytes (`pdu_class.calculateRtuFrameSize`, as
   `FramerRTU.decode` already does) and block in `select`/`serial.read(n)` for exactly
   that many bytes; keep t3.5 after the last received byte before `send`.
-- **Command latency (p99 ≤ the wire's worst case + 1 ms).** Commands preempt polls: a
-  new velocity command wakes the drive loop between cycles (`CycleLoop.wake`) and is
-  written before the next status read of the cycle in progress (`ModbusDrive.poll(between=
-  ...)`; on a bus, before any drive's next read). That took the median from about one
-  cycle (~25 ms at 115200, ~77 ms at 19200) to ~4 ms / ~12 ms. The bound is the wire's: a
-  command that arrives just as the longest status read starts waits for that whole
-  transaction (request, t3.5, reply, t3.5), then for its own request's bytes, since the
-  table measures up to the setpoint request's last byte at the drive. The 1 ms on top is
-  for DDS delivery, the executor and the driver's turnaround. (Until 2026-11-23 evening
-  the target left out the setpoint request itself, 0.7 ms at 115200 and 4.2 ms at 19200:
-  the rows read NOT met by about that much.) Since 2026-11-23 night the driver runs in a
-  process of its own (a bus_node), as on a robot; before, it shared the bench's process
-  and GIL with the publishing loop. The p99 sits at the target and moves with the host:
-  five runs of the 115200 row that evening gave 7.08-7.69 ms at 0.1-0.6 % host steal and
-  8.99 ms at 4 % (the in-process design, alternated with it: 6.69-7.48 ms); the re-run of
-  2026-11-24 (0.14 % steal, the cheaper RTU cycle of section 5) gave 7.05 ms at 115200 and
-  19.78 ms at 19200, 0.03 ms over each target (19.73 ms, met, the night before): fewer
-  interpreted steps per transaction did not move the tail, which is the wire's and the
-  wake-ups'. Shorter status reads lower the worst case (profile `every:` /
-  `max_read_registers`); Modbus TCP has no such serialisation.
-- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met on a quiet host (the
-  CANopen re-run of 2026-11-23 night: 0 missed at both priorities, 0.05 % steal); runs with
-  host steal miss a few to a few dozen.** The table puts the previous design (a
+- **Command latency (p99 ≤ the wire's worst case + 1 ms).** Commands preempt polls: a new
+  velocity command wakes the drive loop between cycles (`CycleLoop.wake`) and is written
+  before the next status read of the cycle in progress (`ModbusDrive.poll(between=...)`;
+  on a bus, before any drive's next read). That took the median from about one cycle (~25
+  ms at 115200, ~77 ms at 19200) to ~4 ms / ~12 ms. The bound is the wire's: a command that
+  arrives just as the longest status read starts waits for that whole transaction (request,
+  t3.5, reply, t3.5), then for its own request's bytes, since the table measures up to the
+  setpoint request's last byte at the drive. The 1 ms on top is for DDS delivery, the
+  executor and the driver's turnaround. (Until 2026-11-23 evening the target left out the
+  setpoint request itself, 0.7 ms at 115200 and 4.2 ms at 19200: the rows read NOT met by
+  about that much.) Since 2026-11-23 night the driver runs in a process of its own (a
+  bus_node), as on a robot; before, it shared the bench's process and GIL with the
+  publishing loop. The p99 sits at the target and moves with the host: five runs of the
+  115200 row that evening gave 7.08-7.69 ms at 0.1-0.6 % host steal and 8.99 ms at 4 % (the
+  in-process design, alternated with it: 6.69-7.48 ms); the re-run of 2026-11-24 (0.14 %
+  steal, the cheaper RTU cycle of section 5) gave 7.05 ms at 115200 and 19.78 ms at 19200,
+  0.03 ms over each target (19.73 ms, met, the night before), and the full run of
+  2026-11-26 (0.08 % steal) 6.79 and 19.70 ms, met at both: fewer interpreted steps per
+  transaction did not move the tail, which is the wire's and the wake-ups'. Shorter status
+  reads lower the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no
+  such serialisation.
+- **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met in some runs, not in
+  others: 0 missed at both priorities in the CANopen re-run of 2026-11-23 night (0.05 %
+  steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08 %),
+  16 and 19 in the CANopen re-run right after it (0.39 %, the table); runs with more host
+  steal miss a few dozen.** The table puts the previous design (a
   `drive_node` per drive, each with its own loop thread) next to what ships: one `bus_node`
   thread per CAN channel that writes every drive's RPDOs in one burst and then one SYNC
   (`transport.sync_producer`) where the drives take synchronous PDOs (`cia402_velocity`:
@@ -367,8 +371,12 @@ BOUNDS = """### Targets and what bounds them
   VM is descheduled. 8 drives at 500 Hz: neither process keeps up here (drives time out and
   reconnect: `connections`), and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
   SYNC would exceed the bus's capacity anyway (`load % 1M`).
-- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for one) — not met:
-  3.8 % and 6.9 % (4.5 and 7.4 before 2026-11-24); half the previous design's.** The
+- **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
+  drive_node) — not met: 3.7 %, and 6.9 % for a drive_node (6.8 % for a bus_node with one
+  drive) in the full run of 2026-11-26 (4.5 and 7.4 before 2026-11-24); half the previous
+  design's.** The single-drive row was a bus_node with one drive until 2026-11-26; the
+  drive_node the target names costs the same (7.1-7.2 % against 6.9-7.6 % in four
+  interleaved runs that day). The
   executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
   previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
   rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
@@ -404,11 +412,19 @@ BOUNDS = """### Targets and what bounds them
   reply PDUs (~900), the state snapshot the node publishes (~800), the run/stop decision
   and the watchdog. Meeting 3 % would take the control thread down by another third: a
   compiled link layer, or fewer transactions per cycle (the profile's `every:` for slow
-  values, a drive that allows longer reads); a faster executor would not do it.
+  values, a drive that allows longer reads); a faster executor would not do it. For one
+  drive the executor thread alone is ~2.2-2.5 % of a core, and most of it is not our
+  callbacks: py-spy (2026-11-26) found ~75 % of that thread's busy samples inside rclpy's
+  C++ `spin_once` with no Python frame of ours below it (`perf`: the interpreter's
+  attribute lookups), while building a `DriveStatus` and a `JointState` takes ~17 µs per
+  20 Hz publish (~0.03 % of a core); 5 % for one drive would need the control thread at
+  ~2.3 %, half its cost. The GIL switch interval is not a lever: 0.1 ms against Python's
+  5 ms, two interleaved runs each, differed by less than the runs' own spread.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
-  priority), 87-90 % in the full runs of 2026-11-23 with host steal.** Before the executor change
+  priority), 87-90 % in the full runs of 2026-11-23 with host steal; the quiet full run of
+  2026-11-26 met it at both priorities (90.3 and 91.5 %).** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
@@ -422,17 +438,18 @@ BOUNDS = """### Targets and what bounds them
   design: a bus connects one offline drive per cycle, so every online drive stays
   addressed well within its comm-loss timeout (issue 9), and a cycle of n online drives
   takes n x ~30 ms at 115200.
-- **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not met on this machine; 1 ms
-  reported as measured.** The plan runs 10 s per case (not 60 s) to keep the bench near 15
-  minutes. The process-data thread (`EthercatSegment._cycle`) is a Python loop that sleeps
-  to an absolute schedule and skips whole slots when it wakes more than a period late
-  (counted as missed). Its own cost is small (~4 % of a core at 2 ms, ~6 % at 1 ms); what
-  bounds it is wake-up latency on a 2-core machine shared with the simulated segment (a
-  Python process answering every frame, 15-35 % of a core) and other work: p50 jitter is
-  ~0.05 ms, p99 0.2-2.4 ms, max 1.5-15 ms in the run of 2026-11-23 evening. Lost frames
-  are frames that did not come back within the receive timeout (0.8 × the cycle) because
-  the simulator was descheduled. What would move it: `transport.realtime_priority` style
-  SCHED_FIFO for the process-data thread (`SegmentSettings.realtime_priority`,
-  `bench/ethercat_cycle.py --rt`), an isolated core, and a real ESC (hardware answers in
-  microseconds, not a Python process).
+- **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not shown: the bench runs 10 s
+  per case; 0 missed at 2 ms with 1, 2 and 4 drives in the quiet full run of 2026-11-26,
+  30-58 in earlier runs; 1 ms reported as measured.** The plan runs 10 s per case (not 60
+  s) to keep the bench near 15 minutes. The process-data thread (`EthercatSegment._cycle`)
+  is a Python loop that sleeps to an absolute schedule and skips whole slots when it wakes
+  more than a period late (counted as missed). Its own cost is small (~4 % of a core at 2
+  ms, ~6 % at 1 ms); what bounds it is wake-up latency on a 2-core machine shared with the
+  simulated segment (a Python process answering every frame, 15-35 % of a core) and other
+  work: p50 jitter is ~0.05 ms, p99 0.2-2.4 ms, max 1.5-15 ms in the run of 2026-11-23
+  evening. Lost frames are frames that did not come back within the receive timeout (0.8 ×
+  the cycle) because the simulator was descheduled. What would move it:
+  `transport.realtime_priority` style SCHED_FIFO for the process-data thread
+  (`SegmentSettings.realtime_priority`, `bench/ethercat_cycle.py --rt`), an isolated core,
+  and a real ESC (hardware answers in microseconds, not a Python process).
 """
