@@ -346,31 +346,35 @@ BOUNDS = """### Targets and what bounds them
   such serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met in some runs, not in
   others: 0 missed at both priorities in the CANopen re-run of 2026-11-23 night (0.05 %
-  steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08 %),
-  16 and 19 in the CANopen re-run right after it (0.39 %, the table); runs with more host
-  steal miss a few dozen.** The table puts the previous design (a
-  `drive_node` per drive, each with its own loop thread) next to what ships: one `bus_node`
-  thread per CAN channel that writes every drive's RPDOs in one burst and then one SYNC
-  (`transport.sync_producer`) where the drives take synchronous PDOs (`cia402_velocity`:
-  transmission type 1; the Kinco stays event-driven), with and without `realtime_priority`
-  (SCHED_FIFO for that thread). On a SYNC-driven bus a new command waits for the next
-  cycle's SYNC (at most one period) instead of preempting the cycle, so `SYNCs` = cycles.
-  Since 2026-11-23 evening the driver has a process of its own, as on a robot (the bench's
-  command publisher shared its GIL before), cycles are counted from the RPDOs on the
-  simulated bus, and the executables freeze their start-up heap (`ros/executable.py
-  settle_heap`): a full garbage collection of a CANopen bus_node walked ~62 000 objects for
-  62 ms, 15 cycles at 250 Hz, and one came unasked seconds after start-up; frozen, 0.6 ms.
-  The bus thread went from 602 missed cycles over 60 s (simulator in the driver's process)
-  to 27-34 (own process for the simulator), and to 4-6 in a CANopen-only run on a quiet
-  host (18:08, both priorities), and to 0 in the re-run of 2026-11-23 night. What is left
-  is the machine: its 2 CPUs carry the driver (~0.4 core: bus thread, CAN receive thread,
-  executor taking 1000 commands/s), the simulator (most of a core: Python answering ~3000
-  frames/s, hence left at normal priority: at SCHED_FIFO it pre-empted the driver and
-  missed more), the publisher and loopback TCP; a cycle that wakes more than a period late
-  is missed, and node 1's RPDO gaps come in clusters of a few hundred ms, as when the whole
-  VM is descheduled. 8 drives at 500 Hz: neither process keeps up here (drives time out and
-  reconnect: `connections`), and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
-  SYNC would exceed the bus's capacity anyway (`load % 1M`).
+  steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08
+  %), 16 and 19 in the CANopen re-run right after it (0.39 %, the table); runs with more
+  host steal miss a few dozen. The misses come with the host's steal: four more 60 s runs
+  at priority 50 that day gave 0, 0 and 0 missed with 1-11 ticks (10 ms each) of steal
+  during the run, and 18 with 25 ticks; putting the channel's receive thread (the library's
+  notifier) at SCHED_FIFO too, alternated with it, changed nothing, so it was not kept.**
+  The table puts the previous design (a `drive_node` per drive, each with its own loop
+  thread) next to what ships: one `bus_node` thread per CAN channel that writes every
+  drive's RPDOs in one burst and then one SYNC (`transport.sync_producer`) where the drives
+  take synchronous PDOs (`cia402_velocity`: transmission type 1; the Kinco stays
+  event-driven), with and without `realtime_priority` (SCHED_FIFO for that thread). On a
+  SYNC-driven bus a new command waits for the next cycle's SYNC (at most one period)
+  instead of preempting the cycle, so `SYNCs` = cycles. Since 2026-11-23 evening the driver
+  has a process of its own, as on a robot (the bench's command publisher shared its GIL
+  before), cycles are counted from the RPDOs on the simulated bus, and the executables
+  freeze their start-up heap (`ros/executable.py settle_heap`): a full garbage collection
+  of a CANopen bus_node walked ~62 000 objects for 62 ms, 15 cycles at 250 Hz, and one came
+  unasked seconds after start-up; frozen, 0.6 ms. The bus thread went from 602 missed
+  cycles over 60 s (simulator in the driver's process) to 27-34 (own process for the
+  simulator), and to 4-6 in a CANopen-only run on a quiet host (18:08, both priorities),
+  and to 0 in the re-run of 2026-11-23 night. What is left is the machine: its 2 CPUs carry
+  the driver (~0.4 core: bus thread, CAN receive thread, executor taking 1000 commands/s),
+  the simulator (most of a core: Python answering ~3000 frames/s, hence left at normal
+  priority: at SCHED_FIFO it pre-empted the driver and missed more), the publisher and
+  loopback TCP; a cycle that wakes more than a period late is missed, and node 1's RPDO
+  gaps come in clusters of a few hundred ms, as when the whole VM is descheduled. 8 drives
+  at 500 Hz: neither process keeps up here (drives time out and reconnect: `connections`),
+  and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
+  capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
   drive_node) — not met: 3.7 %, and 6.9 % for a drive_node (6.8 % for a bus_node with one
   drive) in the full run of 2026-11-26 (4.5 and 7.4 before 2026-11-24); half the previous
