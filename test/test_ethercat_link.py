@@ -79,9 +79,12 @@ def test_open_identifies_slaves_and_maps_chosen_pdos(start_segment, open_segment
     assert (imo.output_size, imo.input_size) == (21, 8)
     assert (boneng.output_size, boneng.input_size) == (4, 4)
     assert all(s.state is ALState.OP for s in link.slaves)
-    wait_for(lambda: link.stats().cycles > 50, 2.0, 'cycles')
+    # (the last cycle's frame may be one the simulated segment was too late to return:
+    # lost frames are counted apart; a frame that came back has the full count)
+    wait_for(lambda: link.stats().cycles > 50 and link.stats().last_wkc == 6, 2.0,
+             'cycles with the full WKC')
     stats = link.stats()
-    assert stats.expected_wkc == 6 and stats.last_wkc == 6 and stats.wkc_errors == 0
+    assert stats.expected_wkc == 6 and stats.wkc_errors == 0
 
 
 def test_outputs_drive_the_simulated_drive_and_inputs_report_it(start_segment, open_segment):
@@ -188,8 +191,10 @@ def test_dc_mode_runs(start_segment, open_segment):
     link = open_segment(sync_mode=SyncMode.DC, cycle_time_s=0.001)
     link.start()
     assert sim.esc(1)['sync0_cycle_ns'] == 1_000_000
-    wait_for(lambda: link.stats().cycles > 200, 3.0, 'cycles')
-    assert link.stats().last_wkc == link.stats().expected_wkc == 6
+    # (as above: the last frame may be a lost one, counted apart)
+    wait_for(lambda: link.stats().cycles > 200 and link.stats().last_wkc == 6, 3.0,
+             'cycles with the full WKC')
+    assert link.stats().expected_wkc == 6
 
 
 def test_sm_watchdog_is_configured(start_segment, open_segment):
