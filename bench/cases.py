@@ -680,12 +680,11 @@ def drive_node_process(document: dict[str, Any], tag: str,
     Its settings and the bus's link and control rate become the node's parameters;
     it takes the name the bus would give it (``/<tag>/d1/drive``).
     """
-    bus = document['bus']
-    settings = {key: value for key, value in bus.items() if key != 'name'}
-    settings.update(next(iter(document['drives'].values())))
-    namespace = settings.pop('namespace')
+    config = parse_bus_config(document)
+    drive = config.drives[0]
+    settings = {**config.settings, **drive.settings}
     return DriverProcess('vfd_ros2.ros.drive_node',
-                         ['-r', f'__ns:={namespace}', '-r', '__node:=drive',
+                         ['-r', f'__ns:={drive.namespace}', '-r', f'__node:={drive.name}',
                           '--params-file', '{dir}/params.yaml'], 1, tag, executor=executor,
                          files={'params.yaml': {'/**': {'ros__parameters': settings}}})
 
