@@ -34,12 +34,13 @@ from std_msgs.msg import Float64
 
 from vfd_ros2.control.bus import Bus, parse_bus_config
 from vfd_ros2.control.factory import build_controller
-from vfd_ros2.control.state import RunState
+from vfd_ros2.control.state import DriveState, RunState
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
 from vfd_ros2.ros.drive_node import DriveNode
 from vfd_ros2.ros.executable import make_executor, spin_in_background
+from vfd_ros2.ros.messages import status_message
 from vfd_ros2.transports.modbus import ModbusRtuTransport, PymodbusRtuTransport
 
 from .simproc import SimProcess, wait_port
@@ -647,10 +648,23 @@ class DriverProcess:
                                    + self._log.read().decode(errors='replace')[-800:])
             self.spin_for(0.05)
 
-    def transactions(self) -> int:
-        # Each drive's status carries its own counters (Transport.stats_for): the
-        # line's transactions are their sum.
-        return sum(s.transactions for s in self.last.values())
+    def transaction_counts(self) -> dict[int, tuple[int, float]]:
+        """Return each drive's transaction count and the stamp of the status that carried it.
+
+        Each drive's status carries its own counters (Transport.stats_for): the
+        line's rate is the sum of theirs, each over its own stamps, so a slow
+        ``status_rate`` does not blur it.
+        """
+        return {unit: (s.transactions, s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec)
+                for unit, s in self.last.items()}
+
+    @staticmethod
+    def transaction_rate(before: dict[int, tuple[int, float]],
+                         after: dict[int, tuple[int, float]]) -> float:
+        """Transactions per second on the line between two ``transaction_counts``."""
+        return sum((count - before[unit][0]) / (stamp - before[unit][1])
+                   for unit, (count, stamp) in after.items()
+                   if unit in before and stamp > before[unit][1])
 
     def close(self) -> None:
         self.child.terminate()
@@ -673,7 +687,7 @@ def bus_node_process(document: dict[str, Any], units: int, tag: str,
                          tag, command_rate, executor, files={'bus.yaml': document})
 
 
-def drive_node_process(document: dict[str, Any], tag: str,
+def drive_node_process(document: dict[str, Any], tag: str, command_rate: float | None = 50.0,
                        executor: str = 'events') -> DriverProcess:
     """Run the first drive of a bus ``document`` as a drive_node in its own process.
 
@@ -685,7 +699,8 @@ def drive_node_process(document: dict[str, Any], tag: str,
     settings = {**config.settings, **drive.settings}
     return DriverProcess('vfd_ros2.ros.drive_node',
                          ['-r', f'__ns:={drive.namespace}', '-r', f'__node:={drive.name}',
-                          '--params-file', '{dir}/params.yaml'], 1, tag, executor=executor,
+                          '--params-file', '{dir}/params.yaml'], 1, tag, command_rate,
+                         executor=executor,
                          files={'params.yaml': {'/**': {'ros__parameters': settings}}})
 
 
@@ -701,7 +716,7 @@ def _bus_document(tag: str, profile_name: str, units: int, link: dict[str, Any],
 def _cpu_window(bus: DriverProcess, window: float,
                 profile_with_pyspy: bool = False) -> dict[str, Any]:
     """CPU %, per thread, RSS and transactions/s of the bus_node process over ``window``."""
-    tx0 = bus.transactions()
+    tx0 = bus.transaction_counts()
     threads0 = _thread_cpu(bus.child.pid)
     cpu0, start = _proc_cpu_seconds(bus.child.pid), time.monotonic()
     spy = _start_pyspy(bus.child.pid, window) if profile_with_pyspy else None
@@ -713,7 +728,7 @@ def _cpu_window(bus: DriverProcess, window: float,
         'cpu_percent_by_thread': {
             name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
             for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0},
-        'transactions_per_s': round((bus.transactions() - tx0) / (end - start), 1),
+        'transactions_per_s': round(bus.transaction_rate(tx0, bus.transaction_counts()), 1),
         'comm_errors': sum(s.comm_errors for s in bus.last.values()),
         'rss_mb': round(_proc_rss_mb(bus.child.pid), 1),
     }
@@ -724,12 +739,17 @@ def _cpu_window(bus: DriverProcess, window: float,
 
 def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
               profile_with_pyspy: bool = False, executor: str = 'events',
-              node: str = 'bus_node') -> dict[str, Any]:
+              node: str = 'bus_node', status_rate: float = 20.0,
+              command_rate: float = 50.0) -> dict[str, Any]:
     """Measure the driver in its own process at 50 Hz with status publishing: CPU %, RSS.
 
     ``executor``: ``events`` (what ships) or ``single`` (the previous design's
     SingleThreadedExecutor, for the side-by-side figure). ``node``: ``bus_node``
     (the drives of one line in one node) or ``drive_node`` (one drive, ``units`` 1).
+    ``status_rate`` (each drive's) and ``command_rate`` (a planner's, per drive) set
+    the ROS traffic around the same control cycle: rows that lower one of them show
+    what it costs. Below 4 Hz of commands ``command_timeout`` is raised to three
+    command periods, so the drives keep running.
     """
     port = _port_path('cpu')
     tag = f'c{uuid.uuid4().hex[:6]}'
@@ -739,16 +759,20 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
             'transport.frame_gap': 0.0}
     result: dict[str, Any] = {'profile': profile_name, 'drives': units, 'executor': executor,
                               'node': node, 'control_rate_hz': control_rate,
-                              'status_rate_hz': 20.0}
+                              'status_rate_hz': status_rate, 'command_rate_hz': command_rate}
     document = _bus_document(tag, profile_name, units, link, control_rate)
+    for drive_settings in document['drives'].values():
+        drive_settings['status_rate'] = status_rate
+        if command_rate < 4.0:
+            drive_settings['command_timeout'] = 3.0 / command_rate
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
         wait_port(port)
         if node == 'drive_node':
             if units != 1:
                 raise ValueError('a drive_node drives one drive')
-            bus = drive_node_process(document, tag, executor=executor)
+            bus = drive_node_process(document, tag, command_rate, executor=executor)
         else:
-            bus = bus_node_process(document, units, tag, executor=executor)
+            bus = bus_node_process(document, units, tag, command_rate, executor=executor)
         try:
             bus.wait_all_running(30.0)
             bus.spin_for(1.0)
@@ -764,6 +788,81 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
         'target_percent_per_drive': 3.0 if units > 1 else 5.0,
     })
     return result
+
+
+#: a process that subscribes to the DriveStatus topic named by its argument until killed
+_STATUS_SUBSCRIBER = """
+import sys
+import rclpy
+from rclpy.node import Node
+from vfd_ros2.msg import DriveStatus
+rclpy.init()
+node = Node('bench_status_subscriber')
+node.create_subscription(DriveStatus, sys.argv[1], lambda message: None, 10)
+try:
+    rclpy.spin(node)
+except BaseException:
+    pass
+"""
+
+
+def wake_cost(samples: int = 40, pause: float = 0.05) -> dict[str, Any]:
+    """CPU of building and publishing the first ``DriveStatus`` after a sleep, and the next.
+
+    A node does its work in short bursts between sleeps (20 ms for a 50 Hz cycle,
+    50 ms between status publishes); on a shared VM the caches are cold by then.
+    Each sample sleeps ``pause``, then times (this thread's CPU) building and
+    publishing one message, then nine more back to back: medians of ``samples``.
+    The topic has one subscriber, in a process of its own, as a robot's status has.
+    """
+    name = f'bench_wake_{uuid.uuid4().hex[:6]}'
+    subscriber = subprocess.Popen(
+        [sys.executable, '-c', _STATUS_SUBSCRIBER, f'/{name}/status'],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        cwd=tempfile.gettempdir())      # not a source tree: vfd_ros2.msg is installed
+    context = Context()
+    rclpy.init(context=context)
+    node = Node(name, context=context)
+    try:
+        publisher = node.create_publisher(DriveStatus, '~/status', 10)
+        deadline = time.monotonic() + 20.0
+        while publisher.get_subscription_count() < 1:
+            if time.monotonic() > deadline or subscriber.poll() is not None:
+                raise RuntimeError('the status subscriber process did not come up')
+            time.sleep(0.1)
+        state = DriveState(hardware_id='boneng_am@/dev/ttyUSB0#1', online=True)
+        stamp = node.get_clock().now().to_msg()
+        figures: dict[str, list[float]] = {key: [] for key in (
+            'message_first_us', 'message_following_us', 'publish_first_us',
+            'publish_following_us')}
+        clock = time.thread_time_ns
+        for _ in range(samples):
+            time.sleep(pause)
+            t0 = clock()
+            message = status_message(state, stamp, 'frame', 'profile')
+            t1 = clock()
+            publisher.publish(message)
+            t2 = clock()
+            for _ in range(9):
+                status_message(state, stamp, 'frame', 'profile')
+            t3 = clock()
+            for _ in range(9):
+                publisher.publish(message)
+            t4 = clock()
+            for key, nanoseconds in (('message_first_us', t1 - t0), ('publish_first_us', t2 - t1),
+                                     ('message_following_us', (t3 - t2) / 9),
+                                     ('publish_following_us', (t4 - t3) / 9)):
+                figures[key].append(nanoseconds / 1e3)
+    finally:
+        subscriber.terminate()
+        try:
+            subscriber.wait(10.0)
+        except subprocess.TimeoutExpired:
+            subscriber.kill()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    return {'kind': 'wake_cost', 'samples': samples, 'pause_ms': 1e3 * pause,
+            **{key: round(statistics.median(values), 1) for key, values in figures.items()}}
 
 
 def io_floor(profile_name: str, units: int, window: float,

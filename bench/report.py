@@ -134,13 +134,19 @@ def render_table(results: dict[str, Any]) -> str:
                               'p99 ms', 'max ms', 'driver CPU %', 'connections'],
                              rows) + ('\n\n' + canopen['note'] if canopen.get('note') else ''))
     rows = []
+    wake = next((r for r in results.get('cpu', []) if r.get('kind') == 'wake_cost'), None)
     for r in results.get('cpu', []):
+        if r.get('kind') == 'wake_cost':
+            continue
         if 'error' in r:
             rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
             continue
         threads = r.get('cpu_percent_by_thread', {})
         design = EXECUTORS.get(r.get('executor', 'single'), '?') + \
-            (', a drive_node' if r.get('node') == 'drive_node' else '')
+            (', a drive_node' if r.get('node') == 'drive_node' else '') + \
+            ''.join(f', {what} {r[key]:g} Hz' for what, key, usual in (
+                ('status', 'status_rate_hz', 20.0), ('commands', 'command_rate_hz', 50.0))
+                if r.get(key, usual) != usual)
         rows.append([design, str(r['drives']),
                      _fmt(r['approx_cycles_per_s'], 1), _fmt(r['cpu_percent'], 1),
                      _fmt(r['cpu_percent_per_drive'], 1), _fmt(threads.get('control loop'), 1),
@@ -163,7 +169,16 @@ def render_table(results: dict[str, Any]) -> str:
                           'CPU % per drive', 'of it control thread %',
                           'executor and other Python threads %',
                           'process CPU µs per Modbus transaction', 'RSS MB',
-                          'target per drive'], rows))
+                          'target per drive'], rows)
+                     + ('' if wake is None or 'error' in wake else
+                        f"\n\nThe same work costs more as the first thing after a sleep, as "
+                        f"it comes in a node (the thread's CPU, medians of {wake['samples']}): "
+                        f"after {wake['pause_ms']:g} ms asleep, building a `DriveStatus` from a "
+                        f"drive's state took {wake['message_first_us']:g} µs and publishing it "
+                        f"(one subscriber, another process) "
+                        f"{wake['publish_first_us']:g} µs; the next nine, back to back, "
+                        f"{wake['message_following_us']:g} and "
+                        f"{wake['publish_following_us']:g} µs each."))
     rows = []
     for r in results.get('steps', []):
         if 'error' in r:

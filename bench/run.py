@@ -95,6 +95,14 @@ def plan(quick: bool) -> dict[str, list[tuple[str, Callable[[], dict[str, Any]]]
     # The issue's single-drive target names a drive_node: one drive, a node of its own.
     cpu.append(('cpu x1 drive_node events', lambda: cases.cpu_usage(
         'boneng_am', 1, cpu_window, node='drive_node')))
+    # Where that drive_node's CPU goes: the same node with one kind of ROS traffic slowed.
+    if not quick:
+        cpu += [(f'cpu x1 drive_node {name}', lambda k=traffic: cases.cpu_usage(
+            'boneng_am', 1, cpu_window, node='drive_node', **k))
+            for name, traffic in (('status 1 Hz', {'status_rate': 1.0}),
+                                  ('commands 1 Hz', {'command_rate': 1.0}))]
+    # What the same work costs when it is the first thing after a sleep, as in a node.
+    cpu.append(('cpu wake cost', lambda: cases.wake_cost(10 if quick else 40)))
     # The same I/O without the driver: what any driver doing it pays on this machine.
     cpu += [(f'cpu io floor x{units}', lambda u=units: cases.io_floor('boneng_am', u, cpu_window))
             for units in (1, 4)]
