@@ -282,7 +282,7 @@ def render_markdown(results: dict[str, Any], table: str) -> str:
                       for drives, top in spy)
     return f"""## Performance
 
-Measured by `{command}` (`bench/run.py`, about 15 minutes on 2 cores; `scripts/bench
+Measured by `{command}` (`bench/run.py`, about 17 minutes on 2 cores; `scripts/bench
 --quick` for a smoke run; results in `bench/results/latest.json`). Everything runs on one
 machine: the simulated drives in their own process behind a pseudo-terminal whose wire
 time is emulated at the baud rate (`vfd_ros2/sim/rtu_line.py`: a request is complete only
@@ -391,54 +391,48 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.7 %, and 6.9 % for a drive_node (6.8 % for a bus_node with one
-  drive) in the full run of 2026-11-26 (4.5 and 7.4 before 2026-11-24); half the previous
-  design's.** The single-drive row was a bus_node with one drive until 2026-11-26; the
-  drive_node the target names costs the same (7.1-7.2 % against 6.9-7.6 % in four
-  interleaved runs that day). The
-  executables spin rclpy's `EventsExecutor` (`VFD_ROS2_EXECUTOR=single` selects the
-  previous `SingleThreadedExecutor`, measured side by side): the single-threaded one
-  rebuilt its wait set from every entity on every wake-up (py-spy: ~80 % of a 32-drive
-  bus_node). The wheel's events executor does not await coroutine callbacks
-  (ros2/rclpy#1473), so the drive services are answered from the control thread
-  (`ros/deferred_service.py`), and a bus publishes every drive's status and diagnostics
-  from one timer per rate. The control loops name their OS thread (`vfd bus ...`), so the
-  table splits the process: the executor side is ~2.5 % of a core for one drive and ~4 %
-  for four — rclpy's own cost per message (a bare Float64 subscription at 200 Hz costs ~280
-  µs of CPU per message in the executor and Fast DDS threads with the events executor, ~760
-  µs with the single-threaded one), here 50 commands/s per drive plus 20 Hz status. The
-  rest is the control thread, and most of it is Python, not I/O: the rows "the same I/O
-  alone" send the same frames to the same simulator at the same pace, each reply read by
-  its length and not decoded, and cost ~0.6 % of a core per drive with four drives (~20-40
-  µs of CPU per transaction: the pty's system calls and the wake-ups); the control thread
-  costs ~100 µs per transaction. `perf` on the control thread (2026-11-24, four drives) put
-  ~64 % of its samples in the interpreter (`libpython`) and ~31 % in the kernel (14 points
-  of it in returning from the context switch of each blocking wait for a reply). Section 5a
-  counts the cycle's Python in bytecode steps, which the host's steal and cold caches do
-  not move: 12658 steps per drive-cycle before 2026-11-24, 9320 after. Read requests and
-  their frames are now built once and reused, a reply's CRC is checked two bytes per step
-  (`vfd_ros2/protocol/modbus_crc.py`, tested against pymodbus' own; pymodbus' byte loop was
-  16 % of the steps), pymodbus' PDU class is looked up once per function code, a reply's
-  length is taken from its header once, and error texts are built only for errors.
-  Interleaved A/B runs of the bus_node process, old and new code, three each: the control
-  thread went from 12.3-13.3 to 10.5-11.7 % of a core. 30 % fewer steps (8891: those runs
-  and section 5 also counted transactions inline, since put back on the transport's one
-  `count`) made it only ~13 % cheaper, because the rest of its cost does not shrink with
-  the steps: the kernel's share, and the interpreter running cold after each 20 ms sleep
-  (in-process, before these changes: 500 µs of CPU per drive-cycle back to back, 1170 µs
-  paced at 50 Hz). What is left is spread thin: decoding 13 values and 6 flags (`poll`,
-  ~1000 steps), the link's framing and checks (~2500 over the ~5.4 transactions), pymodbus'
-  reply PDUs (~900), the state snapshot the node publishes (~800), the run/stop decision
-  and the watchdog. Meeting 3 % would take the control thread down by another third: a
-  compiled link layer, or fewer transactions per cycle (the profile's `every:` for slow
-  values, a drive that allows longer reads); a faster executor would not do it. For one
-  drive the executor thread alone is ~2.2-2.5 % of a core, and most of it is not our
-  callbacks: py-spy (2026-11-26) found ~75 % of that thread's busy samples inside rclpy's
-  C++ `spin_once` with no Python frame of ours below it (`perf`: the interpreter's
-  attribute lookups), while building a `DriveStatus` and a `JointState` takes ~17 µs per
-  20 Hz publish (~0.03 % of a core); 5 % for one drive would need the control thread at
-  ~2.3 %, half its cost. The GIL switch interval is not a lever: 0.1 ms against Python's
-  5 ms, two interleaved runs each, differed by less than the runs' own spread.
+  drive_node) — not met: 3.4 % with four drives and 6.4 % for a drive_node in the re-run of
+  section 5 on 2026-11-26 night (3.4-3.7 % and 5.8-6.9 % over five runs that day); half the
+  previous design's.**
+  - *What changed for it.* The executables spin rclpy's `EventsExecutor`
+    (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
+    side by side): the single-threaded one rebuilt its wait set from every entity on every
+    wake-up (py-spy: ~80 % of a 32-drive bus_node). The wheel's events executor does not
+    await coroutine callbacks (ros2/rclpy#1473), so the drive services are answered from
+    the control thread (`ros/deferred_service.py`), and a bus publishes every drive's
+    status and diagnostics from one timer per rate. The cycle's Python went from 12658 to
+    9320 bytecode steps per drive-cycle (section 5a): read requests and their frames built
+    once, a reply's CRC checked two bytes per step (`vfd_ros2/protocol/modbus_crc.py`,
+    tested against pymodbus' own), pymodbus' PDU class looked up once per function code, a
+    reply's length taken from its header once, error texts built only for errors.
+  - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
+    splits the process. The control thread costs ~2.3 % of a core per drive with four
+    drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
+    same simulator at the same pace, each reply read by its length and not decoded) cost
+    0.4-0.9 %, so most of it is the driver's Python, not I/O (`perf`, 2026-11-24: ~64 % of
+    its samples in the interpreter, ~31 % in the kernel). The executor thread is ~2-2.5 %
+    for one drive, and the rows that slow one kind of ROS traffic say where (four runs):
+    status at 1 Hz instead of 20 takes 0.8-1.5 points off it, commands at 1 Hz instead of
+    50 0.5-1.0.
+  - *What bounds it: cold starts, not the amount of Python.* Each of those is a short burst
+    of work after a sleep, and on this shared VM the caches are cold by then: the note
+    under the table times a `DriveStatus` built and published to a subscriber as the first
+    thing after 50 ms asleep at 7 times its cost back to back (~185 and ~260 µs against ~25
+    and ~35 µs). The control thread pays the same (in-process, 2026-11-24: 500 µs of CPU
+    per drive-cycle back to back, 1170 µs paced at 50 Hz), which is why 30 % fewer steps
+    made it only ~13 % cheaper, and why four drives on one bus, one wake-up per cycle for
+    all, cost less per drive than one. The GIL switch interval is not a lever: 0.1 ms
+    against Python's 5 ms, two interleaved runs each, differed by less than the runs' own
+    spread.
+  - *Levers not taken.* Publishing a drive_node's status from its control thread right
+    after the poll saves the status wake-ups: 0.7-1.0 points in three interleaved pairs
+    (6.4-7.5 % to 5.4-6.6 %), not enough for 5 %, and it would put ROS publishing into the
+    cycle (32 drives' worth into a bus thread's, against the fleet's share of the wire; a 1
+    ms EtherCAT cycle's) and hold status back while a cycle waits out a silent drive. A
+    compiled link layer, or fewer transactions per cycle (the AM reads at most 5 registers
+    and no undocumented gaps: 5 per cycle unless the profile's `every:` polls more values
+    at a lower rate) would be the next steps. An integrator short of CPU has `status_rate`:
+    at 1 Hz a drive_node took 4.9-6.0 % here.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
