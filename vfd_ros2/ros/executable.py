@@ -101,7 +101,13 @@ def make_executor(context: Context | None = None) -> Executor:
 def spin_until_shutdown(executor: Executor, context: Context) -> None:
     """Spin until Ctrl-C / SIGTERM shuts ``context`` down, the GIL released between events."""
     while context.ok():
-        executor.spin_once(timeout_sec=0.1)
+        executor.spin_once(timeout_sec=IDLE_SPIN_TIMEOUT)
+
+
+#: seconds an idle executor waits before checking the context again. A shutdown wakes
+#: it at once (both executors wait on it), so this only sets how often an idle node
+#: wakes for nothing: at 0.1 s that was ~0.1-0.2 % of a core for a parked drive_node.
+IDLE_SPIN_TIMEOUT = 1.0
 
 
 class BackgroundSpin(threading.Thread):
