@@ -391,9 +391,9 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.4 % with four drives and 6.4 % for a drive_node in the re-run of
-  section 5 on 2026-11-26 night (3.4-3.7 % and 5.8-6.9 % over five runs that day); half the
-  previous design's.**
+  drive_node) — not met: 3.8 % with four drives and 6.4 % for a drive_node in the last run
+  of section 5 on 2026-11-26 night (3.4-3.8 % and 5.8-6.9 % over six runs that day); half
+  the previous design's.**
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
@@ -406,24 +406,25 @@ BOUNDS = """### Targets and what bounds them
     tested against pymodbus' own), pymodbus' PDU class looked up once per function code, a
     reply's length taken from its header once, error texts built only for errors.
   - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
-    splits the process. The control thread costs ~2.3 % of a core per drive with four
+    splits the process. The control thread costs ~2.2-2.5 % of a core per drive with four
     drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
     same simulator at the same pace, each reply read by its length and not decoded) cost
-    0.4-0.9 %, so most of it is the driver's Python, not I/O (`perf`, 2026-11-24: ~64 % of
+    0.4-1.0 %, so most of it is the driver's Python, not I/O (`perf`, 2026-11-24: ~64 % of
     its samples in the interpreter, ~31 % in the kernel). The executor thread is ~2-2.5 %
-    for one drive, and the rows that slow one kind of ROS traffic say where (four runs):
+    for one drive, and the rows that slow one kind of ROS traffic say where (five runs):
     status at 1 Hz instead of 20 takes 0.8-1.5 points off it, commands at 1 Hz instead of
     50 0.5-1.0.
   - *What bounds it: cold starts, not the amount of Python.* Each of those is a short burst
     of work after a sleep, and on this shared VM the caches are cold by then: the note
     under the table times a `DriveStatus` built and published to a subscriber as the first
-    thing after 50 ms asleep at 7 times its cost back to back (~185 and ~260 µs against ~25
-    and ~35 µs). The control thread pays the same (in-process, 2026-11-24: 500 µs of CPU
-    per drive-cycle back to back, 1170 µs paced at 50 Hz), which is why 30 % fewer steps
-    made it only ~13 % cheaper, and why four drives on one bus, one wake-up per cycle for
-    all, cost less per drive than one. The GIL switch interval is not a lever: 0.1 ms
-    against Python's 5 ms, two interleaved runs each, differed by less than the runs' own
-    spread.
+    thing after 50 ms asleep at 5-8 times its cost back to back (two runs). The control
+    thread pays the same (in-process, 2026-11-24: 500 µs of CPU per drive-cycle back to
+    back, 1170 µs paced at 50 Hz), which is why 30 % fewer steps made it only ~13 %
+    cheaper, and why four drives on one bus, one wake-up per cycle for all, cost less per
+    drive than one. The GIL switch interval is not a lever: 0.1 ms against Python's 5 ms,
+    two interleaved runs each, differed by less than the runs' own spread; nor, below the
+    runs' spread, is an idle executor's wake-up every 0.1 s (now every 1 s: 0.1-0.2 points
+    less for a drive_node with status and commands at 1 Hz, three interleaved pairs).
   - *Levers not taken.* Publishing a drive_node's status from its control thread right
     after the poll saves the status wake-ups: 0.7-1.0 points in three interleaved pairs
     (6.4-7.5 % to 5.4-6.6 %), not enough for 5 %, and it would put ROS publishing into the
