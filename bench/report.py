@@ -417,14 +417,16 @@ BOUNDS = """### Targets and what bounds them
   - *What bounds it: cold starts, not the amount of Python.* Each of those is a short burst
     of work after a sleep, and on this shared VM the caches are cold by then: the note
     under the table times a `DriveStatus` built and published to a subscriber as the first
-    thing after 50 ms asleep at 5-8 times its cost back to back (two runs). The control
-    thread pays the same (in-process, 2026-11-24: 500 µs of CPU per drive-cycle back to
-    back, 1170 µs paced at 50 Hz), which is why 30 % fewer steps made it only ~13 %
-    cheaper, and why four drives on one bus, one wake-up per cycle for all, cost less per
-    drive than one. The GIL switch interval is not a lever: 0.1 ms against Python's 5 ms,
-    two interleaved runs each, differed by less than the runs' own spread; nor, below the
-    runs' spread, is an idle executor's wake-up every 0.1 s (now every 1 s: 0.1-0.2 points
-    less for a drive_node with status and commands at 1 Hz, three interleaved pairs).
+    thing after 50 ms asleep at 5-8 times its cost back to back (two runs). It is not the
+    threads moving between CPUs: a drive_node pinned to one CPU cost the same (three
+    interleaved pairs). The control thread pays the same (in-process, 2026-11-24: 500 µs of
+    CPU per drive-cycle back to back, 1170 µs paced at 50 Hz), which is why 30 % fewer
+    steps made it only ~13 % cheaper, and why four drives on one bus, one wake-up per cycle
+    for all, cost less per drive than one. The GIL switch interval is not a lever: 0.1 ms
+    against Python's 5 ms, two interleaved runs each, differed by less than the runs' own
+    spread; nor, below the runs' spread, is an idle executor's wake-up every 0.1 s (now
+    every 1 s: 0.1-0.2 points less for a drive_node with status and commands at 1 Hz, three
+    interleaved pairs).
   - *Levers not taken.* Publishing a drive_node's status from its control thread right
     after the poll saves the status wake-ups: 0.7-1.0 points in three interleaved pairs
     (6.4-7.5 % to 5.4-6.6 %), not enough for 5 %, and it would put ROS publishing into the
