@@ -115,6 +115,36 @@ def test_parameter_tables_are_included(write_profile, tmp_path):
     assert len(profile.parameters) == 6
 
 
+def test_an_unchanged_profile_is_parsed_once_and_a_changed_one_anew(write_profile, tmp_path):
+    """A bus of many drives of one family shares one Profile; an edited file is read again."""
+    table = tmp_path / 'extra.yaml'
+
+    def write_table(scale: float) -> None:
+        table.write_text(yaml.safe_dump({'parameters': [
+            {'code': 'B4.02', 'address': 0x3402, 'description': 'acceleration',
+             'scale': scale, 'unit': 's', 'name': 'acceleration_time'}]}), encoding='utf-8')
+
+    def include(data):
+        data['parameter_tables'] = ['extra.yaml']
+    write_table(0.1)
+    path = write_profile(include)
+    first = load_profile_file(path)
+    assert load_profile_file(path) is first
+    assert load_profile_file(str(path)) is first
+    write_table(0.2)            # the same size and, within the clock's tick, the same mtime
+    second = load_profile_file(path)
+    assert second is not first and second.parameter('acceleration_time').scale == 0.2
+    path.write_text(path.read_text().replace('Overcurrent', 'Overkurrent'))
+    assert load_profile_file(path).faults.table[1].name == 'Overkurrent'
+    path.write_text('name: [')  # an edit that breaks the file is reported, not served
+    with pytest.raises(ProfileError, match='not valid YAML'):
+        load_profile_file(path)
+    table.unlink()
+    path.write_text(yaml.safe_dump({**minimal_profile(), 'parameter_tables': ['extra.yaml']}))
+    with pytest.raises(ProfileError, match='cannot read'):
+        load_profile_file(path)
+
+
 # --- lookups ------------------------------------------------------------------------------
 
 @pytest.fixture(scope='module')
