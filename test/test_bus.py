@@ -134,6 +134,46 @@ def test_wire_utilisation_counts_bytes_and_the_spec_gap():
     assert figures.transactions_per_second == pytest.approx(50.0)
 
 
+def test_a_starting_bus_connects_what_fits_the_cycle_its_drives_were_sized_for(tmp_path):
+    """Offline drives' share of the cycle goes to connects: not one drive per cycle.
+
+    Every cycle's planned link time (the online drives' cycles, the connects at a
+    silent drive's cost, one service action) stays within the addressing interval the
+    drives' host-loss timeouts were written for; two units are absent and cost their
+    timeout each time they are tried.
+    """
+    profile = load_profile('boneng_am')
+    present = list(range(1, 11))
+    line = SimulatedRtuLine([SimulatedDrive(profile, unit) for unit in present],
+                            tmp_path / 'rs485').start()
+    try:
+        bus = Bus(parse_bus_config({
+            'bus': {'transport.type': 'modbus_rtu', 'transport.port': str(tmp_path / 'rs485'),
+                    'transport.baudrate': 115200, 'transport.timeout': 0.05},
+            'drives': {f'd{unit}': {'transport.unit_id': unit, 'drive.profile': 'boneng_am'}
+                       for unit in [*present, 20, 21]}}))
+        controllers = list(bus.controllers.values())
+        action = max(c.drive.action_seconds() for c in controllers)
+        timeout = bus.transport.failed_exchange_seconds()
+        online_after: list[int] = []
+        for _ in range(len(controllers)):
+            planned = sum(c.drive.cycle_seconds() for c in controllers if c.link.online)
+            tried = [c for c in controllers if c.link.connect_due]
+            bus.step()
+            tried = [c for c in tried if not c.link.connect_due]     # online, or failed
+            planned += sum(max(c.drive.connect_seconds(), timeout) for c in tried)
+            assert planned + action <= bus.addressing_interval + 1e-9 or len(tried) == 1
+            online_after.append(sum(c.link.online for c in controllers))
+            if online_after[-1] == len(present):
+                break
+        assert online_after[0] >= 3, online_after         # not one drive per cycle
+        assert online_after[-1] == len(present) and len(online_after) <= 5, online_after
+        assert not bus.controllers['d20'].link.online
+    finally:
+        bus.finish()
+        line.stop()
+
+
 def test_a_dead_drive_does_not_stall_the_other(agv_bus):
     agv_bus.commands.update(left=1.0, right=1.0)
     wait_for(lambda: all((s := last(agv_bus.statuses[w])) and s.running for w in WHEELS), 6.0,

@@ -148,8 +148,9 @@ class Bus:
         """Worst-case time between two requests to any drive of this bus.
 
         One cycle of every drive (or the control period, if longer), plus what a
-        cycle may add: one connect or one failed exchange (a bus connects or
-        retries at most one offline drive per cycle) and one service action.
+        cycle may add: one connect or one failed exchange, and one service action.
+        More connects in one cycle use only the offline drives' part of it
+        (``_drives_to_connect``).
         """
         drives = [c.drive for c in self.controllers.values()]
         cycle = sum(drive.cycle_seconds() for drive in drives)
@@ -193,20 +194,50 @@ class Bus:
 
     def step(self) -> None:
         controllers = list(self.controllers.values())
-        due = [c for c in controllers if c.connect_due]
-        chosen = due[self._connect_turn % len(due)] if due else None
-        self._connect_turn += 1
+        connecting = self._drives_to_connect(controllers)
         self._command_waiting = False           # every command is written now
         self._plan_watchdog_check()
         for controller in controllers:          # commands first, for every drive ...
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
-            controller.command_phase(connect_allowed=controller is chosen)
+            if controller in connecting:
+                # A connect is several exchanges: a new command or a tripped
+                # watchdog of a drive already done goes out before it.
+                self.preempt_between_reads()
+            controller.command_phase(connect_allowed=controller in connecting)
         for transport in self.transports:       # (CANopen: one SYNC applies them all)
             transport.end_command_burst()
         self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
+
+    def _drives_to_connect(self, controllers: list[DriveController]) -> list[DriveController]:
+        """Offline drives due to connect this cycle: in turn, as many as fit (at least one).
+
+        The drives' host-loss timeouts were sized for a cycle of every drive plus
+        one connect (``addressing_interval``). While drives are offline their part of
+        that cycle is free: connects (each counted at its worst, a silent drive's
+        timeout) may use it, so a bus starting 32 drives does not take 32 ever longer
+        cycles to bring them online, and no drive online waits longer than planned.
+        """
+        due = [c for c in controllers if c.connect_due]
+        if not due:
+            return []
+        first = self._connect_turn % len(due)
+        due = due[first:] + due[:first]
+        budget = (self.addressing_interval
+                  - max(c.drive.action_seconds() for c in controllers)
+                  - sum(c.drive.cycle_seconds() for c in controllers if c.link.online))
+        chosen: list[DriveController] = []
+        for controller in due:
+            cost = max(controller.drive.connect_seconds(),
+                       controller.drive.transport.failed_exchange_seconds())
+            if chosen and cost > budget:
+                break
+            chosen.append(controller)
+            budget -= cost
+        self._connect_turn += len(chosen)
+        return chosen
 
     def _command_arrived(self) -> None:
         """Note a drive's new command (any thread): it goes out before the next status read."""

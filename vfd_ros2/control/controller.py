@@ -321,7 +321,7 @@ class DriveController:
         self.poll_phase()
 
     def command_phase(self, connect_allowed: bool = True) -> None:
-        """Connect when due (and allowed: a bus connects one drive per cycle), then command."""
+        """Connect when due (and allowed: a bus chooses which drives connect), then command."""
         self._cycle_ok = False
         self.link.new_cycle()
         if connect_allowed and self.link.connect_due:
