@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import pytest
 
@@ -71,6 +72,16 @@ def test_plugin_is_listed(plugin):
 
 def test_plugin_is_not_listed_without_its_distribution():
     assert 'loopback' not in available_transports()
+
+
+def test_plugins_are_looked_up_again_when_the_path_changes(plugin, monkeypatch):
+    """Lookups are kept per sys.path: a distribution put on the path later is found."""
+    assert 'loopback' in available_transports()
+    without = [entry for entry in sys.path if entry != str(plugin)]
+    monkeypatch.setattr(sys, 'path', without)
+    assert 'loopback' not in available_transports()
+    monkeypatch.setattr(sys, 'path', [*without, str(plugin)])
+    assert 'loopback' in available_transports()
 
 
 def test_plugin_loads(plugin):

@@ -10,9 +10,9 @@ the ``vfd_ros2.drives`` entry-point group: ``"module:TransportBase" =
 from __future__ import annotations
 
 import importlib
-from importlib import metadata
 
 from ..errors import TransportLoadError
+from ..transports import registered
 from .base import Drive, HostLossProtection, ParameterValue, Reading, size_comm_timeout
 
 ENTRY_POINT_GROUP = 'vfd_ros2.drives'
@@ -36,7 +36,7 @@ def _load(path: str) -> type:
 def drive_class_for(transport_class: type) -> type[Drive]:
     """Return the drive class for a transport class (by its nearest registered base)."""
     table = dict(BUILTIN_DRIVES)
-    table.update({ep.name: ep.value for ep in metadata.entry_points(group=ENTRY_POINT_GROUP)})
+    table.update({name: ep.value for name, ep in registered(ENTRY_POINT_GROUP).items()})
     candidates = {_load(base_path): drive_path for base_path, drive_path in table.items()}
     for base in transport_class.__mro__:
         if base in candidates:
