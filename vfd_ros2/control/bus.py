@@ -150,7 +150,7 @@ class Bus:
         One cycle of every drive (or the control period, if longer), plus what a
         cycle may add: one connect or one failed exchange, and one service action.
         More connects in one cycle use only the offline drives' part of it
-        (``_drives_to_connect``).
+        (``_connect_candidates``).
         """
         drives = [c.drive for c in self.controllers.values()]
         cycle = sum(drive.cycle_seconds() for drive in drives)
@@ -194,50 +194,62 @@ class Bus:
 
     def step(self) -> None:
         controllers = list(self.controllers.values())
-        connecting = self._drives_to_connect(controllers)
+        candidates, budget = self._connect_candidates(controllers)
+        spent, tried = 0.0, 0   # the link time this cycle's connects took, measured
         self._command_waiting = False           # every command is written now
         self._plan_watchdog_check()
         for controller in controllers:          # commands first, for every drive ...
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
-            if controller in connecting:
+            cost = candidates.get(controller)
+            # After the first, a connect must still fit what the others really took
+            # (a slow drive's connect takes its timeouts, not the wire's time).
+            connect = cost is not None and (not tried or spent + cost <= budget)
+            if connect:
                 # A connect is several exchanges: a new command or a tripped
                 # watchdog of a drive already done goes out before it.
                 self.preempt_between_reads()
-            controller.command_phase(connect_allowed=controller in connecting)
+                started = self._clock()
+            controller.command_phase(connect_allowed=connect)
+            if connect:
+                # (its first status poll, later this cycle, counted as planned)
+                spent += self._clock() - started + controller.drive.cycle_seconds()
+                tried += 1
+        self._connect_turn += tried
         for transport in self.transports:       # (CANopen: one SYNC applies them all)
             transport.end_command_burst()
         self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
-    def _drives_to_connect(self, controllers: list[DriveController]) -> list[DriveController]:
-        """Offline drives due to connect this cycle: in turn, as many as fit (at least one).
+    def _connect_candidates(self, controllers: list[DriveController]
+                            ) -> tuple[dict[DriveController, float], float]:
+        """Offline drives due to connect this cycle, with their planned cost, and the budget.
 
         The drives' host-loss timeouts were sized for a cycle of every drive plus
         one connect (``addressing_interval``). While drives are offline their part of
-        that cycle is free: connects (each counted at its worst, a silent drive's
-        timeout) may use it, so a bus starting 32 drives does not take 32 ever longer
-        cycles to bring them online, and no drive online waits longer than planned.
+        that cycle is free: connects may use it, so a bus starting 32 drives does not
+        take 32 ever longer cycles to bring them online. In turn, as many as fit
+        (each counted at its worst, a silent drive's timeout), at least one; ``step``
+        checks each after the first against the time the others really took.
         """
         due = [c for c in controllers if c.connect_due]
         if not due:
-            return []
+            return {}, 0.0
         first = self._connect_turn % len(due)
-        due = due[first:] + due[:first]
         budget = (self.addressing_interval
                   - max(c.drive.action_seconds() for c in controllers)
                   - sum(c.drive.cycle_seconds() for c in controllers if c.link.online))
-        chosen: list[DriveController] = []
-        for controller in due:
+        chosen: dict[DriveController, float] = {}
+        planned = 0.0
+        for controller in due[first:] + due[:first]:
             cost = max(controller.drive.connect_seconds(),
                        controller.drive.transport.failed_exchange_seconds())
-            if chosen and cost > budget:
+            if chosen and planned + cost > budget:
                 break
-            chosen.append(controller)
-            budget -= cost
-        self._connect_turn += len(chosen)
-        return chosen
+            chosen[controller] = cost
+            planned += cost
+        return chosen, budget
 
     def _command_arrived(self) -> None:
         """Note a drive's new command (any thread): it goes out before the next status read."""
