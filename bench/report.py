@@ -450,10 +450,16 @@ BOUNDS = """### Targets and what bounds them
   command waits or a watchdog may be due); and in the bench itself, the simulated line
   advanced all 32 drive models after every frame and its process ran at normal priority,
   which held replies back. What is left is the per-transaction turnaround
-  (above): ~0.55 ms per ~5 ms transaction at 115200. Start-up to all online is bounded by
-  design: a bus connects one offline drive per cycle, so every online drive stays
-  addressed well within its comm-loss timeout (issue 9), and a cycle of n online drives
-  takes n x ~30 ms at 115200.
+  (above): ~0.55 ms per ~5 ms transaction at 115200. Start-up to all online took 27 s
+  until 2026-11-27, now ~9 s. Each drive parsed and schema-checked its profile's files
+  again (0.25 s per drive) and looked up the installed plugins (every installed
+  distribution's metadata read, several times per drive): both happen once per process
+  now. And a bus connected one offline drive per cycle, so the 32nd waited through 31
+  ever longer cycles; now the part of the cycle that offline drives leave free goes to
+  connects (each planned at a silent drive's timeout, each after the first checked
+  against what the earlier ones really took), so every online drive stays addressed
+  within the interval its comm-loss timeout was sized for (issue 9), and all 32 are
+  online after about 7 cycles of up to 32 x ~30 ms.
 - **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not shown: the bench runs 10 s
   per case; 0 missed at 2 ms with 1, 2 and 4 drives in the quiet full run of 2026-11-26,
   30-58 in earlier runs; 1 ms reported as measured.** The plan runs 10 s per case (not 60
