@@ -20,6 +20,7 @@ import tty
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable
 
 import rclpy
@@ -35,6 +36,7 @@ from std_msgs.msg import Float64
 from vfd_ros2.control.bus import Bus, parse_bus_config
 from vfd_ros2.control.factory import build_controller
 from vfd_ros2.control.state import DriveState, RunState
+from vfd_ros2.drives import modbus as modbus_drive
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
@@ -109,22 +111,49 @@ def setpoint_request_bytes(profile: Profile) -> int:
     return 9 + 2 * setpoint.register_count
 
 
-def static_cycle_time(profile: Profile, framing: Framing) -> float:
-    """Wire time of one drive's steady cycle from the profile alone.
+def block_periods(drive: Any, between: int) -> list[tuple[Any, int]]:
+    """Return each status read block of a Modbus drive and every how many cycles it is read.
 
-    Setpoint write (FC06, or FC16 for 32-bit setpoints) + every planned status
-    read, a block polled every N cycles weighted 1/N; run commands are written
-    only on change and do not count.
+    ``ModbusDrive.poll``: a block every N cycles (the profile's ``every``), and a
+    block of values only shown in ``~/status`` at most once per ``between`` cycles.
     """
-    controller = build_controller({'drive.profile': profile.name, 'transport.port': '/dev/null'})
-    drive = controller.drive
+    return [(block, every * math.ceil(between / every) if shown_only else every)
+            for block, every, shown_only in drive._schedule]  # noqa: SLF001 - the plan
+
+
+def _cycles_between_shown_reads(cycle_seconds: float, status_period: float,
+                                control_period: float) -> int:
+    """Return the cycles of ``cycle_seconds`` until a shown-only block is due again.
+
+    The controller has it read again once ``status_period - control_period`` passed.
+    """
+    display = max(0.0, status_period - control_period)
+    return max(1, math.ceil(display / cycle_seconds - 1e-9))
+
+
+def static_cycle_time(profile: Profile, framing: Framing, units: int = 1,
+                      status_period: float = 0.05, control_period: float = 0.0) -> float:
+    """Wire time of a steady bus cycle of ``units`` drives from the profile alone.
+
+    Per drive: the setpoint write (FC06, or FC16 for 32-bit setpoints) + the planned
+    status reads, a block read every N cycles weighted 1/N (values only shown in
+    ``~/status`` once per status: how many cycles that is depends on the cycle's own
+    length, found by iterating); run commands are written only on change and do not
+    count.
+    """
+    drive = build_controller({'drive.profile': profile.name, 'transport.port': '/dev/null'}).drive
     request = setpoint_request_bytes(profile)
-    total = transaction_time(request, reply_size(6 if request == 8 else 16), framing.char,
+    write = transaction_time(request, reply_size(6 if request == 8 else 16), framing.char,
                              framing.gap)
-    for block in drive.blocks:
-        every = drive._block_every[block]      # noqa: SLF001 - the bench reads the plan
-        total += transaction_time(8, reply_size(3, block.count), framing.char,
-                                  framing.gap) / every
+    reads = [(transaction_time(8, reply_size(3, block.count), framing.char, framing.gap))
+             for block in drive.blocks]
+
+    def cycle(between: int) -> float:
+        periods = [period for _, period in block_periods(drive, between)]
+        return units * (write + sum(t / p for t, p in zip(reads, periods)))
+    total = cycle(1)
+    for _ in range(5):
+        total = cycle(_cycles_between_shown_reads(total, status_period, control_period))
     return total
 
 
@@ -258,7 +287,7 @@ def bus_efficiency(profile_name: str, units: int, framing: Framing, window: floa
         finally:
             streamer.stop()
             bus.close()
-    static = 1.0 / (units * static_cycle_time(profile, framing))
+    static = 1.0 / static_cycle_time(profile, framing, units)
     return {
         'profile': profile_name, 'drives': units, 'baudrate': framing.baudrate,
         'framing': framing.name, 'stack': stack,
@@ -737,6 +766,12 @@ def _cpu_window(bus: DriverProcess, window: float,
     return result
 
 
+def _transactions_per_cycle(drive: Any, cycle_period: float, status_period: float) -> float:
+    """Return the transactions one cycle of a Modbus drive makes, on average."""
+    between = _cycles_between_shown_reads(cycle_period, status_period, cycle_period)
+    return 1.0 + sum(1.0 / period for _, period in block_periods(drive, between))
+
+
 def cpu_usage(profile_name: str, units: int, window: float, control_rate: float = 50.0,
               profile_with_pyspy: bool = False, executor: str = 'events',
               node: str = 'bus_node', status_rate: float = 20.0,
@@ -781,7 +816,7 @@ def cpu_usage(profile_name: str, units: int, window: float, control_rate: float 
             bus.close()
     drive = build_controller({'drive.profile': profile_name,
                               'transport.port': '/dev/null'}).drive
-    per_cycle = 1 + sum(1.0 / drive._block_every[b] for b in drive.blocks)  # noqa: SLF001
+    per_cycle = _transactions_per_cycle(drive, 1.0 / control_rate, 1.0 / status_rate)
     result.update({
         'cpu_percent_per_drive': round(result['cpu_percent'] / units, 2),
         'approx_cycles_per_s': round(result['transactions_per_s'] / units / per_cycle, 1),
@@ -866,7 +901,7 @@ def wake_cost(samples: int = 40, pause: float = 0.05) -> dict[str, Any]:
 
 
 def io_floor(profile_name: str, units: int, window: float,
-             control_rate: float = 50.0) -> dict[str, Any]:
+             control_rate: float = 50.0, status_rate: float = 20.0) -> dict[str, Any]:
     """Measure the I/O of ``cpu_usage`` without the driver: the floor of any driver.
 
     The same request frames (each drive's setpoint write and the status reads due
@@ -883,7 +918,9 @@ def io_floor(profile_name: str, units: int, window: float,
     framer = FramerRTU(DecodePDU(False))
     setpoint = drive.profile.parameter(drive.profile.velocity.setpoint).address
     cycles: list[list[tuple[bytes, int]]] = []     # per cycle index: (frame, reply bytes)
-    period_cycles = math.lcm(*(drive._block_every[b] for b in drive.blocks))  # noqa: SLF001
+    plan = block_periods(drive, _cycles_between_shown_reads(
+        1.0 / control_rate, 1.0 / status_rate, 1.0 / control_rate))
+    period_cycles = math.lcm(*(period for _, period in plan))
     for index in range(period_cycles):
         frames = []
         for unit in range(1, units + 1):
@@ -891,8 +928,7 @@ def io_floor(profile_name: str, units: int, window: float,
                 address=setpoint, registers=[100], dev_id=unit)), reply_size(6)))
             frames += [(framer.buildFrame(ReadHoldingRegistersRequest(
                 address=b.start, count=b.count, dev_id=unit)), reply_size(3, b.count))
-                for b in drive.blocks
-                if index % drive._block_every[b] == 0]       # noqa: SLF001
+                for b, period in plan if index % period == 0]
         cycles.append(frames)
     done = 0
     with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
@@ -953,27 +989,35 @@ def interpreted_steps(profile_name: str, units: int, cycles: int = 200) -> dict[
             counts[key] = counts.get(key, 0) + 1
         return trace
 
-    with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
-        wait_port(port)
-        bus = Bus(parse_bus_config(document))
-        controllers = list(bus.controllers.values())
-        try:
-            def cycle() -> None:
-                for controller in controllers:
-                    controller.command_velocity(1.0)
-                bus.step()
-            wait_for(lambda: (cycle(), all(c.state.run_state is RunState.RUNNING
-                                            for c in controllers))[1], 10.0, 'drives running')
-            for _ in range(20):
-                cycle()
-            sys.settrace(trace)
+    # The cycles run back to back; the drives' clock advances one 50 Hz period per cycle,
+    # so the values only shown in ~/status are read as often as at 50 Hz (every second).
+    clock = SimpleNamespace(now=0.0)
+    real_time, modbus_drive.time = modbus_drive.time, SimpleNamespace(monotonic=lambda: clock.now)
+    try:
+        with SimProcess('rtu', profile_name, list(range(1, units + 1)), port, emulate=False):
+            wait_port(port)
+            bus = Bus(parse_bus_config(document))
+            controllers = list(bus.controllers.values())
             try:
-                for _ in range(cycles):
+                def cycle() -> None:
+                    for controller in controllers:
+                        controller.command_velocity(1.0)
+                    bus.step()
+                    clock.now += 0.02
+                wait_for(lambda: (cycle(), all(c.state.run_state is RunState.RUNNING
+                                                for c in controllers))[1], 10.0, 'drives running')
+                for _ in range(20):
                     cycle()
+                sys.settrace(trace)
+                try:
+                    for _ in range(cycles):
+                        cycle()
+                finally:
+                    sys.settrace(None)
             finally:
-                sys.settrace(None)
-        finally:
-            bus.finish()
+                bus.finish()
+    finally:
+        modbus_drive.time = real_time
     per_cycle = units * cycles
     top = sorted(counts.items(), key=lambda item: -item[1])[:8]
     return {'profile': profile_name, 'drives': units, 'cycles': cycles,

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 import sys
+from types import SimpleNamespace
 
 import pytest
 
-from unit_support import shipped_profile
+from unit_support import MemoryTransport, shipped_profile
+from vfd_ros2.drives import modbus as modbus_drive
 from vfd_ros2.drives.modbus import ModbusDrive
-from vfd_ros2.errors import TransportLoadError
+from vfd_ros2.errors import ProtocolException, TransportLoadError
 from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.transports import (
     BUILTIN_TRANSPORTS,
@@ -183,6 +185,64 @@ def test_drive_polls_over_the_plugin_transport(plugin):
         assert 1 <= count <= profile.modbus.max_read_registers
         for address in range(start, start + count):
             assert profile.parameter_at(address) is not None, hex(address)
+
+
+class RefusingTransport(MemoryTransport):
+    """Registers in a dict; reads that cover a refused register get exception 2."""
+
+    def __init__(self, refused: set[int]) -> None:
+        super().__init__()
+        self.refused = refused
+
+    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
+        if self.refused & set(range(address, address + count)):
+            self.requests.append(('refused', unit, address, count))
+            raise ProtocolException(2, 'illegal data address')
+        return super().read_registers(unit, address, count)
+
+
+@pytest.mark.parametrize('motor_speed_readable', [True, False])
+def test_values_only_shown_in_the_status_are_read_once_per_display_period(
+        monkeypatch, motor_speed_readable):
+    """The run and fault state and the speed are read every cycle; the rest once per status.
+
+    Where the drive refuses the speed register, the output frequency gives the speed
+    and is read every cycle instead.
+    """
+    profile = shipped_profile('boneng_am')
+    address = {code: profile.parameter(code).address
+               for code in ('A00.00', 'A00.06', 'A00.08', 'A01.00', 'P01.00')}
+    transport = RefusingTransport(set() if motor_speed_readable else {address['A00.06']})
+    drive = ModbusDrive(profile, transport, 1,
+                        VelocityScaling(gear_ratio=10.0, rated_speed_rpm=1330.0, pole_pairs=2))
+    clock = [100.0]
+    monkeypatch.setattr(modbus_drive, 'time', SimpleNamespace(monotonic=lambda: clock[0]))
+    drive.display_period = 0.03               # ~/status at 20 Hz, a cycle of 50 Hz
+    transport.registers[address['A00.00'] + 3] = 123      # A00.03 output frequency
+    read_in: dict[int, list[int]] = {}
+    for cycle in range(10):
+        transport.requests.clear()
+        reading = drive.poll(cycle)
+        for kind, _, start, count in transport.requests:
+            for register in range(start, start + count) if kind == 'read' else ():
+                read_in.setdefault(register, []).append(cycle)
+        clock[0] += 0.02
+    every_cycle = list(range(10))
+    for code in ('A01.00', 'P01.00'):                     # fault, readiness and run flags
+        assert read_in[address[code]] == every_cycle, code
+    assert reading.values['output_frequency'] == pytest.approx(1.23)   # kept between reads
+    if motor_speed_readable:
+        assert read_in[address['A00.06']] == every_cycle
+        assert read_in[address['A00.00']] == [0, 2, 4, 6, 8]       # state, output frequency
+    else:
+        # Cycle 0 finds the block refused, cycle 1 the speed register alone: from
+        # then on the output frequency gives the speed, every cycle.
+        assert 'motor_speed' in reading.unavailable
+        assert read_in[address['A00.00']][-8:] == every_cycle[2:]
+    drive.display_period = 0.0                # a status each cycle (or none known): all
+    transport.requests.clear()
+    drive.poll(11)
+    assert address['A00.00'] in {r[2] for r in transport.requests if r[0] == 'read'}
 
 
 def test_drive_writes_over_the_plugin_transport(plugin):

@@ -123,4 +123,5 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
         action_timeout=float(values['action_timeout']),
         stop_timeout=float(values['stop_timeout']),
         realtime_priority=int(values['realtime_priority']),
+        status_period=1.0 / float(values['status_rate']),
     )

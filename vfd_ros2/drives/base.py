@@ -137,6 +137,10 @@ class DriveOnLink:
     profile: Profile
     transport: Transport
     unit_id: int
+    #: s: values only shown in ~/status (not used by the cycle) are read at most this
+    #: often; the controller sets it from the status and cycle periods. A drive whose
+    #: values all come each cycle anyway (PDOs) has nothing to spare and ignores it.
+    display_period: float = 0.0
 
     @property
     def hardware_id(self) -> str:
@@ -206,6 +210,7 @@ class Drive(Protocol):
     profile: Profile
     transport: Transport
     last_setpoint_raw: int
+    display_period: float      # see DriveOnLink
 
     @classmethod
     def link_settings(cls, profile: Profile, settings: Mapping[str, Any]) -> dict[str, Any]:

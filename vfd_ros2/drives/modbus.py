@@ -7,6 +7,7 @@ a ``VfdError``; the caller (``vfd_ros2.control``) owns threads, timing and polic
 from __future__ import annotations
 
 import math
+import time
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from ..errors import BadFrame, ParameterError, ProfileError, ProtocolException
@@ -84,6 +85,7 @@ class ModbusDrive(DriveOnLink):
             for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
+        self._read_at: dict[int, float] = {}    # a shown-only block's start -> when read
         self._plan_reads()
         self._unsigned_roles = {signal.role: parameter.type.bounds[0] == 0 and not signal.bits
                                 for signal, parameter in self._signals}
@@ -118,7 +120,30 @@ class ModbusDrive(DriveOnLink):
             block: min((s.every for s, p in self._signals if block.covers(p.address)),
                        default=1)
             for block in self.blocks}
-        self._schedule = [(block, self._block_every[block]) for block in self.blocks]
+        used = self._cycle_roles()
+        used_at = [p.address for s, p in self._signals if s.role in used]
+        # (block, every N cycles, only shown: read at most once per display_period)
+        self._schedule = [(block, self._block_every[block],
+                           not any(block.covers(address) for address in used_at))
+                          for block in self.blocks]
+
+    def _cycle_roles(self) -> set[str]:
+        """Roles the cycle itself uses: run and fault state, speed, position counter.
+
+        The other values (currents, voltages, the raw state words) are only shown
+        in ``~/status``: reading them more often than it is published buys nothing.
+        """
+        profile = self.profile
+        roles = {'fault_code', 'fault_subcode'} | {rule.signal for rule in profile.flags.values()}
+        if profile.position.from_drive:
+            roles.add(profile.position.signal)
+        speeds = [signal.role for signal, parameter in self._signals
+                  if signal.role in ('motor_speed', 'output_frequency') and not any(
+                      parameter.address + i in self._refused
+                      for i in range(parameter.register_count))]
+        # The speed _measured_velocity takes: motor_speed where it can be read.
+        roles.update(sorted(speeds, key=('motor_speed', 'output_frequency').index)[:1])
+        return roles
 
     # --- link ---------------------------------------------------------------
 
@@ -134,6 +159,7 @@ class ModbusDrive(DriveOnLink):
     def forget_state(self) -> None:
         """After a link loss nothing read or written before is trusted."""
         self._words.clear()
+        self._read_at.clear()
         self.asserted_command = None
         if self._refused:
             self._refused.clear()      # it may be another drive (or firmware) now
@@ -341,9 +367,12 @@ class ModbusDrive(DriveOnLink):
         ``preempt()`` runs before each read, so a command that arrived meanwhile
         goes on the wire ahead of the remaining status reads.
         """
-        known = self._words
-        for block, every in self._schedule:      # (_refuse plans anew: a new list)
-            if cycle % every and block.start in known:
+        known, read_at, display_period = self._words, self._read_at, self.display_period
+        now = time.monotonic() if display_period else 0.0
+        for block, every, shown_only in self._schedule:   # (_refuse plans anew: a new list)
+            if block.start in known and (cycle % every or shown_only and display_period and
+                                         now < read_at.get(block.start, -math.inf)
+                                         + display_period):
                 continue
             if preempt is not None:
                 preempt()
@@ -353,6 +382,7 @@ class ModbusDrive(DriveOnLink):
                 self._refuse(block, exc)
                 continue
             known.update(zip(range(block.start, block.start + len(words)), words))
+            read_at[block.start] = now
         reading = Reading()
         refusals, values = self._refused, reading.values
         for role, code, span, first, sign, bits, scale, parameter in self._decoding:

@@ -167,6 +167,8 @@ class DriveNode(Node):
         for name, value in changes.items():
             if name == 'control_rate':
                 config['cycle_period'] = 1.0 / float(value)
+            elif name == 'status_rate':
+                config['status_period'] = 1.0 / float(value)
             elif name == 'auto_enable':
                 config['auto_enable'] = bool(value)
             elif name in ('max_velocity', 'command_timeout', 'action_timeout', 'stop_timeout'):
