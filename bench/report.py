@@ -322,9 +322,13 @@ BOUNDS = """### Targets and what bounds them
   with it in back-to-back runs). What moves the cycle rate further is fewer transactions,
   not a faster stack: the BONENG AM allows 5 registers per read and no reads across
   undocumented addresses, so a cycle is 1 write + 4-6 reads (`frames/drive-cycle`), and
-  above 19200 baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Four AM
-  drives on one 115200 line get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive
-  per line or slower status polling (`every:` in the profile). The figures move with the
+  above 19200 baud the spec's fixed 1.75 ms t3.5 is ~2/3 of every transaction. Since
+  2026-11-27 the values only shown in `~/status` (the AM's state word and output
+  frequency) are read once per status message, not every cycle: where a cycle is shorter
+  than the status period (one AM at 38400 and 115200) that is 4.8-5.0 frames per cycle
+  instead of 5.4 and 38 cycles/s instead of 34 at 115200. Four AM drives on one 115200 line
+  get ~8-9 full cycles/s each (`wire max`); 50 Hz needs one drive per line or slower status
+  polling (`every:` in the profile). The figures move with the
   machine: on this VM the host takes CPU time from it at times (steal, in the footer), and
   two full runs on 2026-11-23 during heavy steal gave 68-84 % at 115200 with one drive, the
   simulator itself 170-480 µs late per reply.
@@ -356,17 +360,22 @@ BOUNDS = """### Targets and what bounds them
   steal, the cheaper RTU cycle of section 5) gave 7.05 ms at 115200 and 19.78 ms at 19200,
   0.03 ms over each target (19.73 ms, met, the night before), and the full run of
   2026-11-26 (0.08 % steal) 6.79 and 19.70 ms, met at both: fewer interpreted steps per
-  transaction did not move the tail, which is the wire's and the wake-ups'. Shorter status
-  reads lower the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no
-  such serialisation.
+  transaction did not move the tail, which is the wire's and the wake-ups'. The full run of
+  2026-11-27 (0.24 % steal) and two re-runs gave 7.51, 7.51 and 7.02 ms at 115200 (19.63,
+  19.84 and 19.56 ms at 19200): with fewer reads per cycle the bench's commands come faster
+  (37/s, 0.9 x the planned cycle rate, was 32/s); alternated pairs at both rates that
+  morning gave 6.87-6.95 ms at 32/s and 6.92-7.22 ms at 37/s. Shorter status reads lower
+  the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no such
+  serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met in some runs, not in
   others: 0 missed at both priorities in the CANopen re-run of 2026-11-23 night (0.05 %
   steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08
-  %), 16 and 19 in the CANopen re-run right after it (0.39 %, the table); runs with more
-  host steal miss a few dozen. The misses come with the host's steal: four more 60 s runs
-  at priority 50 that day gave 0, 0 and 0 missed with 1-11 ticks (10 ms each) of steal
-  during the run, and 18 with 25 ticks; putting the channel's receive thread (the library's
-  notifier) at SCHED_FIFO too, alternated with it, changed nothing, so it was not kept.**
+  %), 16 and 19 in the CANopen re-run right after it (0.39 %); 11 and 9 in the full run of
+  2026-11-27 (0.24 %, the table); runs with more host steal miss a few dozen. The misses
+  come with the host's steal: four more 60 s runs at priority 50 on 2026-11-26 gave 0, 0
+  and 0 missed with 1-11 ticks (10 ms each) of steal during the run, and 18 with 25 ticks;
+  putting the channel's receive thread (the library's notifier) at SCHED_FIFO too,
+  alternated with it, changed nothing, so it was not kept.**
   The table puts the previous design (a `drive_node` per drive, each with its own loop
   thread) next to what ships: one `bus_node` thread per CAN channel that writes every
   drive's RPDOs in one burst and then one SYNC (`transport.sync_producer`) where the drives
@@ -391,9 +400,9 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.8 % with four drives and 6.4 % for a drive_node in the last run
-  of section 5 on 2026-11-26 night (3.4-3.8 % and 5.8-6.9 % over six runs that day); half
-  the previous design's.**
+  drive_node) — not met: 3.9 % with four drives and 6.8 % for a drive_node in the full run
+  of 2026-11-27 (0.24 % steal; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26, a
+  quieter day); half the previous design's.**
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
@@ -404,7 +413,12 @@ BOUNDS = """### Targets and what bounds them
     9320 bytecode steps per drive-cycle (section 5a): read requests and their frames built
     once, a reply's CRC checked two bytes per step (`vfd_ros2/protocol/modbus_crc.py`,
     tested against pymodbus' own), pymodbus' PDU class looked up once per function code, a
-    reply's length taken from its header once, error texts built only for errors.
+    reply's length taken from its header once, error texts built only for errors. Since
+    2026-11-27 the values only shown in `~/status` are read once per status message: 4.9
+    transactions per AM cycle instead of 5.4 at 50 Hz with status at 20 Hz (980 instead of
+    1080 per second for four drives) and 8849 steps per drive-cycle; in three interleaved
+    pairs on a noisy morning four drives cost 3.88-4.35 % per drive with it and 4.06-4.18 %
+    reading everything every cycle: less than the runs' spread.
   - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
     splits the process. The control thread costs ~2.2-2.5 % of a core per drive with four
     drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
@@ -432,15 +446,17 @@ BOUNDS = """### Targets and what bounds them
     (6.4-7.5 % to 5.4-6.6 %), not enough for 5 %, and it would put ROS publishing into the
     cycle (32 drives' worth into a bus thread's, against the fleet's share of the wire; a 1
     ms EtherCAT cycle's) and hold status back while a cycle waits out a silent drive. A
-    compiled link layer, or fewer transactions per cycle (the AM reads at most 5 registers
-    and no undocumented gaps: 5 per cycle unless the profile's `every:` polls more values
-    at a lower rate) would be the next steps. An integrator short of CPU has `status_rate`:
-    at 1 Hz a drive_node took 4.9-6.0 % here.
+    compiled link layer would be the next step; fewer transactions per cycle is taken as far
+    as the manual allows (the AM reads at most 5 registers and no undocumented gaps, and
+    the run and fault state and the speed are read every cycle) and bought little. An
+    integrator short of CPU has `status_rate`: at 1 Hz a drive_node took 4.9-6.0 % on
+    2026-11-26, 5.2 % in the full run of 2026-11-27.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
   priority), 87-90 % in the full runs of 2026-11-23 with host steal; the quiet full run of
-  2026-11-26 met it at both priorities (90.3 and 91.5 %).** Before the executor change
+  2026-11-26 met it at both priorities (90.3 and 91.5 %), and so did the full run of
+  2026-11-27 (91.1 and 93.2 %).** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
@@ -462,7 +478,8 @@ BOUNDS = """### Targets and what bounds them
   online after about 7 cycles of up to 32 x ~30 ms.
 - **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not shown: the bench runs 10 s
   per case; 0 missed at 2 ms with 1, 2 and 4 drives in the quiet full run of 2026-11-26,
-  30-58 in earlier runs; 1 ms reported as measured.** The plan runs 10 s per case (not 60
+  7, 3 and 2 in the full run of 2026-11-27 (0.24 % steal), 30-58 in earlier runs; 1 ms
+  reported as measured.** The plan runs 10 s per case (not 60
   s) to keep the bench near 15 minutes. The process-data thread (`EthercatSegment._cycle`)
   is a Python loop that sleeps to an absolute schedule and skips whole slots when it wakes
   more than a period late (counted as missed). Its own cost is small (~4 % of a core at 2

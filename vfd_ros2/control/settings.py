@@ -55,7 +55,8 @@ SETTINGS: tuple[Setting, ...] = (
             'SCHED_FIFO priority (1..99) of the control thread, so that a loaded machine '
             'cannot delay its cycles; 0 = normal scheduling. Needs CAP_SYS_NICE or an '
             'rtprio limit; a refusal is a diagnostics warning', 0, 99),
-    Setting('status_rate', 20.0, 'Hz of ~/status', 0.1, 1000.0, live=True),
+    Setting('status_rate', 20.0, 'Hz of ~/status (a Modbus drive reads the values only '
+            'shown there this often, not every cycle)', 0.1, 1000.0, live=True),
     Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics', 0.01, 100.0, live=True),
     Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline',
             1, 1000),
