@@ -126,17 +126,21 @@ def test_drive_node_command_timeout_and_rates_are_applied(make_harness):
 
     assert set_parameter(h.tester, node, 'status_rate', 5.0).successful
     assert h.node._rate_timers['status_rate'].timer_period_ns == 200_000_000
-    # The values only shown in ~/status are read once per status: with a status (0.2 s)
-    # more often than the cycle (0.25 s), every cycle; at 1 Hz, 0.75 s apart at least.
-    assert h.node.controller.config.status_period == pytest.approx(0.2)
+    # The values only shown in ~/status and /diagnostics are read once per message of the
+    # more frequent: with a status (0.2 s) more often than the cycle (0.25 s), every
+    # cycle; with a status every 5 s, once per diagnostics message (1 Hz): 0.75 s apart.
+    assert h.node.controller.config.shown_period == pytest.approx(0.2)
     h.wait_cycles(2)
     assert h.node.controller.drive.display_period == 0.0
-    assert set_parameter(h.tester, node, 'status_rate', 1.0).successful
+    assert set_parameter(h.tester, node, 'diagnostics_rate', 1.0).successful
+    assert set_parameter(h.tester, node, 'status_rate', 0.2).successful
     h.wait_cycles(2)
     assert h.node.controller.drive.display_period == pytest.approx(0.75)
+    assert set_parameter(h.tester, node, 'diagnostics_rate', 0.5).successful
+    assert h.node.controller.config.shown_period == pytest.approx(2.0)
     assert not set_parameter(h.tester, node, 'status_rate', 0.0).successful
-    assert h.node._rate_timers['status_rate'].timer_period_ns == 1_000_000_000
-    assert h.node.controller.config.status_period == pytest.approx(1.0)
+    assert h.node._rate_timers['status_rate'].timer_period_ns == 5_000_000_000
+    assert h.node.controller.config.shown_period == pytest.approx(2.0)
 
 
 def test_descriptors_tell_live_from_read_only_with_ranges(make_harness):

@@ -49,7 +49,7 @@ STATUS_NOT_READ = 'no status read since the drive connected'
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
 LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
-                         'action_timeout', 'stop_timeout', 'status_period'})
+                         'action_timeout', 'stop_timeout', 'shown_period'})
 
 
 @dataclass(frozen=True)
@@ -66,12 +66,13 @@ class ControllerConfig:
     stop_timeout: float = 10.0        # s to verify stop / disable (deceleration)
     at_speed_tolerance: float = 0.1   # rad/s
     realtime_priority: int = 0        # SCHED_FIFO priority of the control thread; 0 = off
-    status_period: float = 0.05       # s between ~/status messages (values only shown there
-                                      # are read once per status, not every cycle)
+    # s between the messages that show the measured values (~/status or /diagnostics,
+    # whichever comes more often): values only shown there are read once per message.
+    shown_period: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ('command_timeout', 'cycle_period', 'reconnect_period', 'action_timeout',
-                     'stop_timeout', 'status_period'):
+                     'stop_timeout', 'shown_period'):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ParameterError(f'{name} must be > 0, got {value}')
@@ -400,9 +401,9 @@ class DriveController:
         """Read the status, latch faults, advance a service action, publish the state."""
         if self.link.online and self._cycle_ok:
             config = self.config
-            # A value only shown in ~/status, read one cycle before the next message
-            # is due at the latest: every message carries a value read since the last.
-            self.drive.display_period = max(0.0, config.status_period - config.cycle_period)
+            # A value only shown in messages, read one cycle before the next one is due
+            # at the latest: every message carries a value read since the last.
+            self.drive.display_period = max(0.0, config.shown_period - config.cycle_period)
             try:
                 self._reading = self.drive.poll(self._cycle, preempt=self._preempt_reads)
                 self._cycle += 1

@@ -56,7 +56,8 @@ SETTINGS: tuple[Setting, ...] = (
             'cannot delay its cycles; 0 = normal scheduling. Needs CAP_SYS_NICE or an '
             'rtprio limit; a refusal is a diagnostics warning', 0, 99),
     Setting('status_rate', 20.0, 'Hz of ~/status (a Modbus drive reads the values only '
-            'shown there this often, not every cycle)', 0.1, 1000.0, live=True),
+            'shown there and in /diagnostics at the faster rate, not every cycle)', 0.1, 1000.0,
+            live=True),
     Setting('diagnostics_rate', 1.0, 'Hz of /diagnostics', 0.01, 100.0, live=True),
     Setting('comm_loss_threshold', 2, 'consecutive failed cycles before the drive is offline',
             1, 1000),
@@ -124,5 +125,5 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
         action_timeout=float(values['action_timeout']),
         stop_timeout=float(values['stop_timeout']),
         realtime_priority=int(values['realtime_priority']),
-        status_period=1.0 / float(values['status_rate']),
+        shown_period=1.0 / max(float(values['status_rate']), float(values['diagnostics_rate'])),
     )

@@ -137,7 +137,7 @@ class DriveOnLink:
     profile: Profile
     transport: Transport
     unit_id: int
-    #: s: values only shown in ~/status (not used by the cycle) are read at most this
+    #: s: values only shown in messages (not used by the cycle) are read at most this
     #: often; the controller sets it from the status and cycle periods. A drive whose
     #: values all come each cycle anyway (PDOs) has nothing to spare and ignores it.
     display_period: float = 0.0

@@ -131,7 +131,8 @@ class ModbusDrive(DriveOnLink):
         """Roles the cycle itself uses: run and fault state, speed, position counter.
 
         The other values (currents, voltages, the raw state words) are only shown
-        in ``~/status``: reading them more often than it is published buys nothing.
+        in ``~/status`` and ``/diagnostics``: reading them more often than those are
+        published buys nothing.
         """
         profile = self.profile
         roles = {'fault_code', 'fault_subcode'} | {rule.signal for rule in profile.flags.values()}

@@ -167,16 +167,18 @@ class DriveNode(Node):
         for name, value in changes.items():
             if name == 'control_rate':
                 config['cycle_period'] = 1.0 / float(value)
-            elif name == 'status_rate':
-                config['status_period'] = 1.0 / float(value)
             elif name == 'auto_enable':
                 config['auto_enable'] = bool(value)
             elif name in ('max_velocity', 'command_timeout', 'action_timeout', 'stop_timeout'):
                 config[name] = float(value)
-        if config:
-            self.controller.reconfigure(**config)
         rates = {name: float(changes[name]) for name in ('status_rate', 'diagnostics_rate')
                  if name in changes}
+        if rates:       # the values shown are read as often as the messages show them
+            config['shown_period'] = 1.0 / max(rates.get('status_rate', self.status_rate),
+                                               rates.get('diagnostics_rate',
+                                                         self.diagnostics_rate))
+        if config:
+            self.controller.reconfigure(**config)
         for name, rate in rates.items():
             setattr(self, name, rate)
             if name in self._rate_timers:
