@@ -102,8 +102,7 @@ class ModbusDrive(DriveOnLink):
         profile = self.profile
         spans = [(p.address, p.register_count) for _, p in self._signals]
         spans += [(p.address, p.register_count) for p in self._status_words]
-        spans = [(a, n) for a, n in dict.fromkeys(spans)
-                 if not any(a + i in self._refused for i in range(n))]
+        spans = [(a, n) for a, n in dict.fromkeys(spans) if not self._refuses(a, n)]
         def readable(address: int) -> bool:
             # A block never reaches over a refused register, nor (on most drives) over
             # an undocumented one.
@@ -127,6 +126,10 @@ class ModbusDrive(DriveOnLink):
                            not any(block.covers(address) for address in used_at))
                           for block in self.blocks]
 
+    def _refuses(self, address: int, count: int) -> bool:
+        """Tell whether the drive refused any of these registers."""
+        return any(address + i in self._refused for i in range(count))
+
     def _cycle_roles(self) -> set[str]:
         """Roles the cycle itself uses: run and fault state, speed, position counter.
 
@@ -139,9 +142,8 @@ class ModbusDrive(DriveOnLink):
         if profile.position.from_drive:
             roles.add(profile.position.signal)
         speeds = [signal.role for signal, parameter in self._signals
-                  if signal.role in ('motor_speed', 'output_frequency') and not any(
-                      parameter.address + i in self._refused
-                      for i in range(parameter.register_count))]
+                  if signal.role in ('motor_speed', 'output_frequency')
+                  and not self._refuses(parameter.address, parameter.register_count)]
         # The speed _measured_velocity takes: motor_speed where it can be read.
         roles.update(sorted(speeds, key=('motor_speed', 'output_frequency').index)[:1])
         return roles
