@@ -34,6 +34,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64
 
 from vfd_ros2.control.bus import Bus, parse_bus_config
+from vfd_ros2.control.controller import display_period
 from vfd_ros2.control.factory import build_controller
 from vfd_ros2.control.state import DriveState, RunState
 from vfd_ros2.drives import modbus as modbus_drive
@@ -125,9 +126,9 @@ def _cycles_between_shown_reads(cycle_seconds: float, status_period: float,
                                 control_period: float) -> int:
     """Return the cycles of ``cycle_seconds`` until a shown-only block is due again.
 
-    The controller has it read again once ``status_period - control_period`` passed.
+    The controller has it read again once ``display_period`` has passed.
     """
-    display = max(0.0, status_period - control_period)
+    display = display_period(status_period, control_period)
     return max(1, math.ceil(display / cycle_seconds - 1e-9))
 
 

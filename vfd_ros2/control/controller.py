@@ -52,6 +52,15 @@ LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'aut
                          'action_timeout', 'stop_timeout', 'shown_period'})
 
 
+def display_period(shown_period: float, cycle_period: float) -> float:
+    """Return how long a value only shown in messages may go unread (``display_period``).
+
+    Read one cycle before the next message is due at the latest, every message
+    carries a value read since the last.
+    """
+    return max(0.0, shown_period - cycle_period)
+
+
 @dataclass(frozen=True)
 class ControllerConfig:
     command_timeout: float = 0.5      # s without a valid command -> stop
@@ -401,9 +410,7 @@ class DriveController:
         """Read the status, latch faults, advance a service action, publish the state."""
         if self.link.online and self._cycle_ok:
             config = self.config
-            # A value only shown in messages, read one cycle before the next one is due
-            # at the latest: every message carries a value read since the last.
-            self.drive.display_period = max(0.0, config.shown_period - config.cycle_period)
+            self.drive.display_period = display_period(config.shown_period, config.cycle_period)
             try:
                 self._reading = self.drive.poll(self._cycle, preempt=self._preempt_reads)
                 self._cycle += 1

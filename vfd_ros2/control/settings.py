@@ -109,6 +109,11 @@ def velocity_scaling(profile: Profile, values: Mapping[str, Any]) -> VelocitySca
     )
 
 
+def shown_period(status_rate: float, diagnostics_rate: float) -> float:
+    """Return the period of the messages that show the measured values, the faster's."""
+    return 1.0 / max(status_rate, diagnostics_rate)
+
+
 def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
     rate = float(values['control_rate'])
     if not rate > 0:
@@ -125,5 +130,6 @@ def controller_config(values: Mapping[str, Any]) -> ControllerConfig:
         action_timeout=float(values['action_timeout']),
         stop_timeout=float(values['stop_timeout']),
         realtime_priority=int(values['realtime_priority']),
-        shown_period=1.0 / max(float(values['status_rate']), float(values['diagnostics_rate'])),
+        shown_period=shown_period(float(values['status_rate']),
+                                  float(values['diagnostics_rate'])),
     )

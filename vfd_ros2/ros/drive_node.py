@@ -42,7 +42,7 @@ from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
-from ..control.settings import SETTINGS
+from ..control.settings import SETTINGS, shown_period
 from ..control.state import CommandOutcome
 from ..drives import drive_class_for
 from ..errors import ParameterError, VfdError, quote
@@ -174,9 +174,9 @@ class DriveNode(Node):
         rates = {name: float(changes[name]) for name in ('status_rate', 'diagnostics_rate')
                  if name in changes}
         if rates:       # the values shown are read as often as the messages show them
-            config['shown_period'] = 1.0 / max(rates.get('status_rate', self.status_rate),
-                                               rates.get('diagnostics_rate',
-                                                         self.diagnostics_rate))
+            config['shown_period'] = shown_period(
+                rates.get('status_rate', self.status_rate),
+                rates.get('diagnostics_rate', self.diagnostics_rate))
         if config:
             self.controller.reconfigure(**config)
         for name, rate in rates.items():
