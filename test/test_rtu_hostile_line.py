@@ -261,7 +261,7 @@ def test_a_port_another_process_holds_is_refused_with_the_reason():
 def test_reads_stay_right_while_the_reused_requests_are_replaced(tmp_path, monkeypatch):
     # The transport reuses each read's request and the link its frame; with stores of
     # 3, every few reads empties them: a stale frame would read another block.
-    monkeypatch.setattr(modbus_transport, 'READ_REQUESTS_KEPT', 3)
+    monkeypatch.setattr(modbus_transport, 'REQUESTS_KEPT', 3)
     monkeypatch.setattr(rtu_link, 'FRAMES_KEPT', 3)
     drive, blocks = distinct_drive(1)
     line = SimulatedRtuLine([drive], tmp_path / 'line', baudrate=115200, seed=7).start()
@@ -272,9 +272,48 @@ def test_reads_stay_right_while_the_reused_requests_are_replaced(tmp_path, monke
             for count in range(1, 6 - offset)]
     try:
         good, phantoms, failures = run_reads(transport, plan, 300, rng)
-        assert len(transport._read_requests) <= 3          # noqa: SLF001
+        assert len(transport._requests) <= 3          # noqa: SLF001
         assert len(transport._link._frames) <= 3            # noqa: SLF001
     finally:
         transport.close()
         line.stop()
     assert (good, phantoms, failures) == (300, 0, 0)
+
+
+def test_writes_stay_right_while_the_reused_requests_are_replaced(tmp_path, monkeypatch):
+    # Writes are reused too (a command that holds is the same frame every cycle), keyed
+    # by their values: with stores of 3, a stale frame would write an earlier value.
+    monkeypatch.setattr(modbus_transport, 'REQUESTS_KEPT', 3)
+    monkeypatch.setattr(rtu_link, 'FRAMES_KEPT', 3)
+    profile = shipped_profile('boneng_am')
+    drive = SimulatedDrive(profile, 1)
+    # read-write, one register, stopped or running: any value in range is stored as sent
+    targets = [p for p in sorted(profile.parameters.values(), key=lambda p: p.address)
+               if p.writable and p.register_count == 1 and p.minimum is not None
+               and p.maximum is not None and p.maximum - p.minimum >= 4 * p.scale
+               and p.code != profile.control.command][:4]
+    assert len(targets) == 4
+    line = SimulatedRtuLine([drive], tmp_path / 'line', baudrate=115200, seed=7).start()
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=0.2)
+    rng = random.Random(11)
+    try:
+        for _ in range(120):
+            parameter = rng.choice(targets)
+            values = [parameter.to_raw(parameter.minimum + parameter.scale * rng.randrange(4))
+                      for _ in range(2)]
+            if rng.random() < 0.5:
+                transport.write_register(1, parameter.address, values[0])
+                assert drive.words[parameter.address] == values[0], parameter.code
+            else:       # two registers from this one: the next address must take one too
+                following = profile.parameter_at(parameter.address + 1)
+                if following is None or following not in targets:
+                    continue
+                values[1] = following.to_raw(following.minimum + following.scale)
+                transport.write_registers(1, parameter.address, values)
+                assert [drive.words[parameter.address + n] for n in (0, 1)] == values
+        assert len(transport._requests) <= 3               # noqa: SLF001
+        assert len(transport._link._frames) <= 3            # noqa: SLF001
+        assert transport.stats_for(1).errors == 0
+    finally:
+        transport.close()
+        line.stop()

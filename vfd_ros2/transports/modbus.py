@@ -54,9 +54,10 @@ STANDARD_EXCEPTIONS: dict[int, str] = {
 }
 
 
-#: read requests kept for reuse: a drive's status reads are a few per drive; parameter
-#: reads (services, backups) may name any address, so the store is emptied when full
-READ_REQUESTS_KEPT = 512
+#: requests kept for reuse: a drive's status reads and its command writes (while the
+#: command holds) are a few per drive; services and backups may name any address or
+#: value, so the store is emptied when full
+REQUESTS_KEPT = 512
 
 
 class _ModbusTransport(RegisterTransport):
@@ -72,9 +73,10 @@ class _ModbusTransport(RegisterTransport):
 
     def __init__(self) -> None:
         super().__init__()
-        # (unit, address, count) -> its read request: a drive's status reads repeat every
-        # cycle, so their PDUs (and, on RTU, their frames) are built once
-        self._read_requests: dict[tuple[int, int, int], ReadHoldingRegistersRequest] = {}
+        # (function, unit, address, count or values) -> its request: a drive's status reads
+        # and, while a command holds, its command writes repeat every cycle, so their PDUs
+        # (and, on RTU, their frames) are built once
+        self._requests: dict[tuple[int, ...], ModbusPDU] = {}
 
     def _exchange(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         raise NotImplementedError
@@ -92,9 +94,14 @@ class _ModbusTransport(RegisterTransport):
     def _execute(self, request: ModbusPDU, reply_bytes: int) -> ModbusPDU:
         self.open()
         unit = request.dev_id
-        self.count(unit, 'frames_sent')
+        # (``count`` by name would cost as much as the rest of the counting, twice a
+        # transaction: these two counters are bumped in place)
+        stats, unit_stats = self.stats, self.stats_for(unit)
+        stats.frames_sent += 1
+        unit_stats.frames_sent += 1
         reply = self._exchange(request, reply_bytes)
-        self.count(unit, 'frames_received')
+        stats.frames_received += 1
+        unit_stats.frames_received += 1
         if (reply.function_code & 0x7F) != request.function_code:
             # pymodbus pairs a TCP reply by transaction id alone and decodes whatever
             # function it names: a reply to another function is not this one's value.
@@ -110,18 +117,21 @@ class _ModbusTransport(RegisterTransport):
             raise BadFrame(f'{self._what(request)}: error reply {reply}')
         return reply
 
+    def _keep(self, key: tuple[int, ...], request: ModbusPDU) -> ModbusPDU:
+        """Keep ``request`` for reuse under ``key`` (function, unit, address, count or values)."""
+        if len(self._requests) >= REQUESTS_KEPT:
+            self._requests.clear()
+        self._requests[key] = request
+        return request
+
     def _mismatch(self, request: ModbusPDU, problem: str) -> BadFrame:
         self.count(request.dev_id, 'bad_frames')
         return BadFrame(f'{self._what(request)}: {problem}')
 
     def read_registers(self, unit: int, address: int, count: int) -> list[int]:
-        key = (unit, address, count)
-        request = self._read_requests.get(key)
-        if request is None:
-            if len(self._read_requests) >= READ_REQUESTS_KEPT:
-                self._read_requests.clear()
-            request = self._read_requests[key] = ReadHoldingRegistersRequest(
-                address=address, count=count, dev_id=unit)
+        key = (3, unit, address, count)
+        request = self._requests.get(key) or self._keep(
+            key, ReadHoldingRegistersRequest(address=address, count=count, dev_id=unit))
         registers = self._execute(request, reply_size(3, count)).registers
         if len(registers) != count:
             raise self._mismatch(request, f'got {len(registers)} registers')
@@ -130,7 +140,9 @@ class _ModbusTransport(RegisterTransport):
 
     def write_register(self, unit: int, address: int, value: int) -> None:
         value &= 0xFFFF
-        request = WriteSingleRegisterRequest(address=address, registers=[value], dev_id=unit)
+        key = (6, unit, address, value)
+        request = self._requests.get(key) or self._keep(
+            key, WriteSingleRegisterRequest(address=address, registers=[value], dev_id=unit))
         reply = self._execute(request, reply_size(6))
         echoed = reply.registers[0] if reply.registers else None
         if reply.address != address or echoed != value:
@@ -141,8 +153,10 @@ class _ModbusTransport(RegisterTransport):
         self.count(unit, 'transactions')
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        request = WriteMultipleRegistersRequest(
-            address=address, registers=[v & 0xFFFF for v in values], dev_id=unit)
+        registers = [v & 0xFFFF for v in values]
+        key = (16, unit, address, *registers)
+        request = self._requests.get(key) or self._keep(
+            key, WriteMultipleRegistersRequest(address=address, registers=registers, dev_id=unit))
         reply = self._execute(request, reply_size(16))
         if reply.address != address or reply.count != len(values):
             raise self._mismatch(request,

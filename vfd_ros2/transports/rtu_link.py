@@ -1,8 +1,9 @@
 """A thin Modbus RTU master over pyserial, framed and decoded by pymodbus.
 
 pymodbus builds every request frame (``FramerRTU.buildFrame`` over its request
-PDUs, so the bytes on the wire are exactly the stock client's; a read request the
-transport asks again and again is built once), tells the length of a reply from
+PDUs, so the bytes on the wire are exactly the stock client's; a request the
+transport sends again and again, a status read or an unchanged command, is built
+once), tells the length of a reply from
 its first bytes (its PDU classes' ``calculateRtuFrameSize``) and decodes it. The
 reply's CRC is checked by ``protocol.modbus_crc`` (the same CRC, in fewer steps).
 What this layer replaces is only how a transaction is driven, because the stock
@@ -67,8 +68,10 @@ from ..protocol.rtu_timing import character_time, frame_gap
 MAX_FRAME = 256
 #: bytes that name a reply's length: unit, function code, byte count
 _HEADER = 3
-#: request frames kept for reuse (a drive's status reads: a few per drive)
+#: request frames kept for reuse (a drive's status reads and command writes: a few per drive)
 FRAMES_KEPT = 512
+#: the functions whose frames are kept: read holding registers, write single / multiple
+_KEPT_FUNCTIONS = frozenset((3, 6, 16))
 
 
 class LinkTimeout(Exception):
@@ -120,8 +123,9 @@ class RtuLink:
         # function code -> PDU class, for the codes without sub-functions (pymodbus'
         # lookupPduClass costs as much as the rest of sizing a frame, three times a reply)
         self._pdu_classes: dict[int, type[ModbusPDU] | None] = {}
-        # (unit, address, count) -> the frame of that read request (reads repeat each cycle)
-        self._frames: dict[tuple[int, int, int], bytes] = {}
+        # (function, unit, address, count, values) -> the frame of that request (a drive's
+        # status reads repeat each cycle, and its command writes while the command holds)
+        self._frames: dict[tuple[int, ...], bytes] = {}
         self._serial: serial.Serial | None = None
         self._fd = -1
         self._quiet_from = 0.0     # monotonic time from which the line may be used again
@@ -243,13 +247,15 @@ class RtuLink:
     # --- internals ----------------------------------------------------------------
 
     def _frame(self, request: ModbusPDU) -> bytes:
-        """Return the frame of ``request``: built once for a read, which repeats.
+        """Return the frame of ``request``: built once for a read or a write, which repeat.
 
-        A read's frame follows from its unit, address and count alone.
+        The frame of a read (03), a single write (06) or a multiple write (16) follows
+        from its function, unit, address, count and values alone.
         """
-        if request.function_code != 3:
+        if request.function_code not in _KEPT_FUNCTIONS:
             return self._framer.buildFrame(request)
-        key = (request.dev_id, request.address, request.count)
+        key = (request.function_code, request.dev_id, request.address, request.count,
+               *request.registers)
         frame = self._frames.get(key)
         if frame is None:
             if len(self._frames) >= FRAMES_KEPT:
