@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping, NamedTuple
 
 from ..drives import HostLossProtection, ParameterValue
 from ..profiles import NO_FAULT, FaultInfo
@@ -39,9 +41,13 @@ class ActionResult:
     value: ParameterValue | None = None
 
 
-@dataclass(frozen=True)
-class DriveState:
-    """A consistent snapshot of everything the node publishes."""
+class DriveState(NamedTuple):
+    """A consistent snapshot of everything the node publishes.
+
+    A named tuple, not a frozen dataclass: the control loop builds one per drive
+    and cycle, and a frozen dataclass sets its 39 fields one ``object.__setattr__``
+    at a time (6 us against 1.6 us, the largest single step of publishing a cycle).
+    """
 
     hardware_id: str
     online: bool = False
@@ -59,7 +65,7 @@ class DriveState:
     commanded_velocity: float = 0.0
     measured_velocity: float = math.nan
     setpoint_raw: int = 0
-    measured: dict[str, float] = field(default_factory=dict)
+    measured: Mapping[str, float] = MappingProxyType({})     # role -> engineering value
     position: float = math.nan          # rad at the output shaft (JointState.position)
     position_source: str = 'integrated'   # 'drive' (a counter it reports) or 'integrated'
     effort: float = math.nan            # N·m at the output shaft; NaN = not measured
