@@ -8,6 +8,7 @@ import time
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from pymodbus.framer import FramerRTU
+from sensor_msgs.msg import JointState
 
 from harness import wait_for
 from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
@@ -316,3 +317,24 @@ def test_corrupted_replies_are_counted_and_survived(make_harness):
     assert status.bad_frames + status.timeouts > 0 and status.comm_errors > 0
     h.line.corrupt_rate = 0.0
     h.wait_status(lambda s: s.online, 5.0, 'resynchronised')
+
+
+def test_status_comes_at_its_rate_with_its_own_stamp_between_slow_cycles(make_harness):
+    # A drive polled at 2 Hz (a long bus cycle) with ~/status at 50 Hz: every message has
+    # a stamp of its own, and the values change only after the next poll.
+    h = make_harness(node_parameters={'control_rate': 2.0, 'command_timeout': 2.0})
+    joints: list[JointState] = []
+    h.tester.create_subscription(JointState, 'joint_states', joints.append, 50)
+    h.wait_status(lambda s: s.online and s.transactions > 0, 5.0, 'online')
+    first = len(h.statuses)
+    wait_for(lambda: len({s.transactions for s in h.statuses[first:]}) >= 3, 5.0,
+             'three polls')
+    statuses = h.statuses[first:]
+    stamps = [s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in statuses]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    polls = {s.transactions for s in statuses}
+    assert len(statuses) >= 4 * len(polls)        # several messages between two polls
+    assert max(s.transactions for s in statuses) > statuses[0].transactions
+    joint_stamps = [j.header.stamp.sec + 1e-9 * j.header.stamp.nanosec for j in joints]
+    assert len(joint_stamps) >= 10 and all(b > a for a, b in zip(joint_stamps,
+                                                                  joint_stamps[1:]))

@@ -43,7 +43,7 @@ from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
 from ..control.settings import SETTINGS, shown_period
-from ..control.state import CommandOutcome
+from ..control.state import CommandOutcome, DriveState
 from ..drives import drive_class_for
 from ..errors import ParameterError, VfdError, quote
 from ..profiles import NO_FAULT
@@ -114,6 +114,10 @@ class DriveNode(Node):
         self._ever_online = False
         self._last_fault = NO_FAULT
         self._fault_published = False
+        # the snapshot ~/status and joint_states were last built from, and those messages
+        self._published_state: DriveState | None = None
+        self._status_msg = DriveStatus()
+        self._joint_msg = JointState()
 
         self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
         self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
@@ -222,9 +226,17 @@ class DriveNode(Node):
             state = self.controller.state
             self._ever_online |= state.online
             stamp = self.get_clock().now().to_msg()
-            self.status_pub.publish(status_message(state, stamp, self.frame_id,
-                                                   self.profile_name))
-            self.joint_pub.publish(joint_state_message([(self.joint_name, state)], stamp))
+            if state is not self._published_state:
+                self._status_msg = status_message(state, stamp, self.frame_id,
+                                                  self.profile_name)
+                self._joint_msg = joint_state_message([(self.joint_name, state)], stamp)
+                self._published_state = state
+            else:
+                # The loop has not polled since (a drive on a long bus cycle): the same
+                # snapshot gives the same messages, so only their stamps are new.
+                self._status_msg.header.stamp = self._joint_msg.header.stamp = stamp
+            self.status_pub.publish(self._status_msg)
+            self.joint_pub.publish(self._joint_msg)
             fault = state.active_fault
             if not self._fault_published or (fault.code, fault.subcode) != \
                     (self._last_fault.code, self._last_fault.subcode):
