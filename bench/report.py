@@ -331,7 +331,10 @@ BOUNDS = """### Targets and what bounds them
   polling (`every:` in the profile). The figures move with the
   machine: on this VM the host takes CPU time from it at times (steal, in the footer), and
   two full runs on 2026-11-23 during heavy steal gave 68-84 % at 115200 with one drive, the
-  simulator itself 170-480 µs late per reply.
+  simulator itself 170-480 µs late per reply. In the full run of 2026-11-27 02:47 four
+  Kinco drives read 85.4 % with the simulator 133 µs late per reply (~50 in the other rows);
+  three interleaved pairs right after gave 93.0-93.9 % for that morning's code and
+  93.1-94.3 % for this one's (four AM drives: 92.9-94.2 and 94.0-94.3 %).
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -364,14 +367,17 @@ BOUNDS = """### Targets and what bounds them
   2026-11-27 (0.24 % steal) and two re-runs gave 7.51, 7.51 and 7.02 ms at 115200 (19.63,
   19.84 and 19.56 ms at 19200): with fewer reads per cycle the bench's commands come faster
   (37/s, 0.9 x the planned cycle rate, was 32/s); alternated pairs at both rates that
-  morning gave 6.87-6.95 ms at 32/s and 6.92-7.22 ms at 37/s. Shorter status reads lower
+  morning gave 6.87-6.95 ms at 32/s and 6.92-7.22 ms at 37/s; the full runs at 02:20 and
+  02:47 (0.05 and 0.2 %) 7.02 and 6.95 ms at 115200, 19.21 and 19.66 ms at 19200. Shorter
+  status reads lower
   the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no such
   serialisation.
 - **CANopen (4 drives at 250 Hz, 0 missed cycles over 60 s) — met in some runs, not in
   others: 0 missed at both priorities in the CANopen re-run of 2026-11-23 night (0.05 %
   steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08
-  %), 16 and 19 in the CANopen re-run right after it (0.39 %); 11 and 9 in the full run of
-  2026-11-27 (0.24 %, the table); runs with more host steal miss a few dozen. The misses
+  %), 16 and 19 in the CANopen re-run right after it (0.39 %); in the full runs of 2026-11-27
+  11 and 9 at 00:36 (0.24 %), 14 and 1 at 02:20 (0.05 %), 4 and 0 at 02:47 (0.2 %, the
+  table); runs with more host steal miss a few dozen. The misses
   come with the host's steal: four more 60 s runs at priority 50 on 2026-11-26 gave 0, 0
   and 0 missed with 1-11 ticks (10 ms each) of steal during the run, and 18 with 25 ticks;
   putting the channel's receive thread (the library's notifier) at SCHED_FIFO too,
@@ -400,9 +406,9 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.9 % with four drives and 6.8 % for a drive_node in the full run
-  of 2026-11-27 (0.24 % steal; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26, a
-  quieter day); half the previous design's.**
+  drive_node) — not met: 3.4 % with four drives and 6.7 % for a drive_node in the full run
+  of 2026-11-27 02:47 (0.2 % steal; 3.6 and 6.7 % at 02:20, 0.05 %; 3.9 and 6.8 % at 00:36,
+  0.24 %; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26); half the previous design's.**
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
@@ -418,7 +424,13 @@ BOUNDS = """### Targets and what bounds them
     transactions per AM cycle instead of 5.4 at 50 Hz with status at 20 Hz (980 instead of
     1080 per second for four drives) and 8849 steps per drive-cycle; in three interleaved
     pairs on a noisy morning four drives cost 3.88-4.35 % per drive with it and 4.06-4.18 %
-    reading everything every cycle: less than the runs' spread.
+    reading everything every cycle: less than the runs' spread. Later that day a command
+    write that repeats reused its request and frame as a read does, the frame counters were
+    bumped in place instead of by name, and the loop's snapshot (`DriveState`) became a
+    named tuple (a frozen dataclass sets its 39 fields one `object.__setattr__` at a time:
+    6 against 1.7 µs): 8095 steps per drive-cycle (-8.5 %), and in three interleaved pairs
+    3.73-4.13 % per drive against 3.81-4.09 % before, which the runs cannot tell apart (a
+    drive_node: 7.44-7.95 against 7.30-7.45 %, a busier hour).
   - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
     splits the process. The control thread costs ~2.2-2.5 % of a core per drive with four
     drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
@@ -456,7 +468,8 @@ BOUNDS = """### Targets and what bounds them
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
   priority), 87-90 % in the full runs of 2026-11-23 with host steal; the quiet full run of
   2026-11-26 met it at both priorities (90.3 and 91.5 %), and so did the full run of
-  2026-11-27 (91.1 and 93.2 %).** Before the executor change
+  2026-11-27 00:36 (91.1 and 93.2 %); those at 02:20 and 02:47 gave 90.0 and 90.5 %, 89.0
+  and 91.8 %.** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
@@ -465,7 +478,11 @@ BOUNDS = """### Targets and what bounds them
   checks before every status read that scanned every drive (now nothing runs unless a
   command waits or a watchdog may be due); and in the bench itself, the simulated line
   advanced all 32 drive models after every frame and its process ran at normal priority,
-  which held replies back. What is left is the per-transaction turnaround
+  which held replies back; and a drive's `~/status` and `joint_states` built anew at every
+  status message although a drive on a 1 s bus cycle has a new snapshot once a second (now
+  built once per snapshot, the stamps renewed: the executor thread 12.6-13.7 -> 9.1-10.5 %
+  of a core and the process 20.3-22.7 -> 16.0-19.4 %, four interleaved pairs; the ratio at
+  normal priority 90.2/90.4 -> 90.9/91.8 %). What is left is the per-transaction turnaround
   (above): ~0.55 ms per ~5 ms transaction at 115200. Start-up to all online took 27 s
   until 2026-11-27, now ~9 s. Each drive parsed and schema-checked its profile's files
   again (0.25 s per drive) and looked up the installed plugins (every installed
@@ -478,7 +495,8 @@ BOUNDS = """### Targets and what bounds them
   online after about 7 cycles of up to 32 x ~30 ms.
 - **EtherCAT (4 drives at 2 ms, 0 missed cycles over 60 s) — not shown: the bench runs 10 s
   per case; 0 missed at 2 ms with 1, 2 and 4 drives in the quiet full run of 2026-11-26,
-  7, 3 and 2 in the full run of 2026-11-27 (0.24 % steal), 30-58 in earlier runs; 1 ms
+  7, 3 and 2 in the full run of 2026-11-27 00:36 (0.24 % steal), 0, 3 and 0 in that of 02:47
+  (0.2 %), 30-58 in earlier runs; 1 ms
   reported as measured.** The plan runs 10 s per case (not 60
   s) to keep the bench near 15 minutes. The process-data thread (`EthercatSegment._cycle`)
   is a Python loop that sleeps to an absolute schedule and skips whole slots when it wakes
