@@ -3,9 +3,9 @@
 pymodbus builds every request frame (``FramerRTU.buildFrame`` over its request
 PDUs, so the bytes on the wire are exactly the stock client's; a request the
 transport sends again and again, a status read or an unchanged command, is built
-once), tells the length of a reply from
-its first bytes (its PDU classes' ``calculateRtuFrameSize``) and decodes it. The
-reply's CRC is checked by ``protocol.modbus_crc`` (the same CRC, in fewer steps).
+once), tells the length of a reply from its first bytes (its PDU classes'
+``calculateRtuFrameSize``) and decodes it. The reply's CRC is checked by
+``protocol.modbus_crc`` (the same CRC, in fewer steps).
 What this layer replaces is only how a transaction is driven, because the stock
 synchronous client (pymodbus 3.16 ``ModbusSerialClient``) does not know how long
 the reply is: it polls ``in_waiting`` with ``time.sleep`` of four character times
