@@ -51,12 +51,8 @@ def _entry_points_on(group: str, _path: tuple[str, ...]) -> tuple[tuple[str, Any
     return tuple((ep.name, ep) for ep in metadata.entry_points(group=group))
 
 
-def _entry_points() -> dict[str, metadata.EntryPoint]:
-    return registered(ENTRY_POINT_GROUP)
-
-
 def available_transports() -> list[str]:
-    return sorted(set(BUILTIN_TRANSPORTS) | set(_entry_points()))
+    return sorted(set(BUILTIN_TRANSPORTS) | set(registered(ENTRY_POINT_GROUP)))
 
 
 def load_transport_class(name: str) -> type[Transport]:
@@ -65,7 +61,7 @@ def load_transport_class(name: str) -> type[Transport]:
         if name in BUILTIN_TRANSPORTS:
             module_name, _, class_name = BUILTIN_TRANSPORTS[name].partition(':')
             cls = getattr(importlib.import_module(module_name), class_name)
-        elif name in (plugins := _entry_points()):
+        elif name in (plugins := registered(ENTRY_POINT_GROUP)):
             cls = plugins[name].load()
         else:
             raise TransportLoadError(
