@@ -295,6 +295,72 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
         with_bus.stop()
 
 
+def test_a_canopen_drive_connecting_never_holds_up_the_others():
+    """A CANopen node being reconnected holds up no other drive of its bus.
+
+    It connects on a thread of its own (here it is silent: each attempt waits out
+    an SDO timeout): the others' RPDOs keep the bus cycle, and a watchdog stop
+    goes out on time. In the bus thread, each attempt held every RPDO for the SDO
+    timeout (and a reset node's fifty SDOs for 0.5-4 s).
+    """
+    import can
+
+    from vfd_ros2.protocol.cia402 import State
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    profile = load_profile('cia402_velocity')
+    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
+    sims = {node_id: SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2, 3)}
+    with_bus = SimulatedCanBus(list(sims.values()), channel).start()
+    config = parse_bus_config({
+        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
+                'transport.channel': channel, 'transport.timeout': 0.4, 'control_rate': 100.0},
+        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
+                             'gear_ratio': 10.0, 'auto_enable': True, 'command_timeout': 0.5,
+                             'reconnect_period': 0.05} for n in (1, 2, 3)}})
+    bus = Bus(config)
+    listener = can.Bus(interface='virtual', channel=channel)
+    rpdo_times: list[float] = []
+    notifier = can.Notifier(listener, [lambda frame: rpdo_times.append(time.monotonic())
+                                       if frame.arbitration_id == 0x201 else None])
+    bus.start()
+    try:
+        first, silent = bus.controllers['n1'], bus.controllers['n3']
+
+        def command_all() -> None:
+            for controller in bus.controllers.values():
+                controller.command_velocity(1.0)
+        wait_for(lambda: command_all() or all(c.state.running
+                                              for c in bus.controllers.values()),
+                 10.0, 'three drives running')
+        sims[3].silent = True
+        wait_for(lambda: command_all() or not silent.state.online, 5.0, 'node 3 offline')
+        attempts = silent.state.timeouts
+        start = time.monotonic()
+        while time.monotonic() < start + 1.5:
+            command_all()
+            time.sleep(0.02)
+        seen = [t for t in rpdo_times if t >= start]
+        gaps = [b - a for a, b in zip(seen, seen[1:])]
+        assert silent.state.timeouts > attempts, 'node 3 was not being reconnected'
+        assert len(seen) > 60 and max(gaps) < 0.2, (len(seen), max(gaps, default=None))
+        # Node 1's commands stop while node 3 is still being tried: its watchdog stop
+        # goes out on time (command_timeout 0.5 s), not after the SDO timeouts.
+        last_command = time.monotonic()
+        end = last_command + 2.0
+        while time.monotonic() < end and sims[1].state is State.OPERATION_ENABLED:
+            bus.controllers['n2'].command_velocity(1.0)
+            time.sleep(0.01)
+        stopped_after = time.monotonic() - last_command
+        assert sims[1].state is not State.OPERATION_ENABLED and stopped_after < 0.75, \
+            stopped_after
+        assert bus.controllers['n2'].state.running and first.state.online
+    finally:
+        bus.shutdown()
+        notifier.stop()
+        listener.shutdown()
+        with_bus.stop()
+
+
 def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_path,
                                                                 monkeypatch):
     """bus_node with three CANopen drives: one python-can handle, per-drive counters."""

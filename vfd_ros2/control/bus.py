@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 #: settings that belong to the bus, not to one drive
 BUS_KEYS = ('control_rate', 'realtime_priority')
+#: s the end of the loop waits for a connect running beside it: the connect wrote the
+#: drive's stop first, and a slow node's remaining SDO exchanges must not hold a Ctrl-C
+CONNECT_JOIN_TIMEOUT = 2.0
 
 
 @dataclass(frozen=True)
@@ -134,6 +137,9 @@ class Bus:
         self._lock = threading.Lock()
         self._window: tuple[float, float, int] = (clock(), 0.0, 0)
         self._connect_turn = 0
+        # The drive connecting on a thread of its own (connects_beside_the_cycle), if any:
+        # the bus thread leaves it alone until that thread has ended.
+        self._beside: tuple[DriveController, threading.Thread] | None = None
         self._broadcast_for: tuple[float, ...] = ()
         self.broadcast_stops = 0      # watchdog trips of every running drive, stopped at once
         # What the checks before every status read look at, so that they cost nothing
@@ -193,8 +199,12 @@ class Bus:
             self._loop.set_period(period)
 
     def step(self) -> None:
-        controllers = list(self.controllers.values())
-        candidates, budget = self._connect_candidates(controllers)
+        controllers = self._serving()
+        if self.transport.connects_beside_the_cycle:
+            self._connect_beside(controllers)
+            candidates, budget = {}, 0.0
+        else:
+            candidates, budget = self._connect_candidates(controllers)
         spent, tried = 0.0, 0   # the link time this cycle's connects took, measured
         self._command_waiting = False           # every command is written now
         self._plan_watchdog_check()
@@ -221,6 +231,42 @@ class Bus:
         self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
+
+    def _serving(self) -> list[DriveController]:
+        """Return the drives this thread serves: all but one connecting beside the cycle."""
+        beside = self._beside
+        if beside is not None and not beside[1].is_alive():
+            self._beside = beside = None
+        return [c for c in self.controllers.values() if beside is None or c is not beside[0]]
+
+    def _connect_beside(self, controllers: list[DriveController]) -> None:
+        """Start the next due drive's connect on a thread of its own (one at a time).
+
+        On a link that allows it (``Transport.connects_beside_the_cycle``), a connect
+        (CANopen: some fifty SDO exchanges, each up to the SDO timeout when the node
+        is slow or silent) would otherwise hold every other drive's commands,
+        watchdog stops and RPDO deadline for as long. That drive is left out of
+        the cycle until its thread ends; the next cycle serves it as usual.
+        """
+        if self._beside is not None:
+            return
+        due = [c for c in controllers if c.connect_due]
+        if not due:
+            return
+        controller = due[self._connect_turn % len(due)]
+        self._connect_turn += 1
+        thread = threading.Thread(target=self._connect_alone, args=(controller,),
+                                  name=f'vfd connect {controller.drive.hardware_id}',
+                                  daemon=True)
+        self._beside = (controller, thread)
+        thread.start()
+
+    @staticmethod
+    def _connect_alone(controller: DriveController) -> None:
+        try:
+            controller.connect_now()
+        except Exception as exc:  # noqa: BLE001 - the thread must end with the drive offline
+            log.exception('%s: connect failed: %s', controller.drive.hardware_id, exc)
 
     def _connect_candidates(self, controllers: list[DriveController]
                             ) -> tuple[dict[DriveController, float], float]:
@@ -272,7 +318,7 @@ class Bus:
     def preempt(self) -> None:
         """Write every drive's new command now, before the next status read."""
         self._broadcast_stop_if_all_tripped()
-        wrote = [controller.preempt() for controller in self.controllers.values()]
+        wrote = [controller.preempt() for controller in self._serving()]
         if any(wrote):
             for transport in self.transports:
                 transport.end_command_burst()
@@ -312,10 +358,14 @@ class Bus:
 
     def preempt_at(self) -> float | None:
         """Return the earliest moment a drive's command watchdog expires (see CycleLoop)."""
-        moments = [m for c in self.controllers.values() if (m := c.preempt_at()) is not None]
+        moments = [m for c in self._serving() if (m := c.preempt_at()) is not None]
         return min(moments, default=None)
 
     def finish(self) -> None:
+        beside = self._beside
+        if beside is not None:      # a connect ends at its next SDO timeout at the latest
+            beside[1].join(CONNECT_JOIN_TIMEOUT)
+            self._beside = None
         for controller in self.controllers.values():
             controller.finish()
         for transport in self.transports:

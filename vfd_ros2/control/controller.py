@@ -351,6 +351,12 @@ class DriveController:
             self.link.error = str(exc)
             self._cycle_ok = True
 
+    def connect_now(self) -> None:
+        """Connect when due, and nothing else (a bus runs it beside its cycle: see Bus)."""
+        self.link.new_cycle()
+        if self.link.connect_due:
+            self._connect()
+
     def watchdog_due(self, horizon: float) -> bool:
         """Return whether the drive was told to run and its watchdog expires by ``horizon``."""
         if not (self._run_written and self.link.online):

@@ -64,6 +64,12 @@ class Transport(abc.ABC):
     parameters: ClassVar[tuple[TransportParameter, ...]] = ()
     #: can several drives share one instance (one port, many slave ids)?
     shared_by_drives: ClassVar[bool] = True
+    #: may one drive's connect run on a thread of its own while the link's thread
+    #: serves the others? (A multi-master link with a channel per device, CANopen's
+    #: SDO per node: a connect of dozens of SDO exchanges, or a silent node's
+    #: timeouts, then never holds up the other drives' cycle. A half-duplex line,
+    #: RS-485, has one exchange at a time: its connects take turns in the cycle.)
+    connects_beside_the_cycle: ClassVar[bool] = False
 
     def __init__(self) -> None:
         self.stats = TransportStats()

@@ -560,6 +560,7 @@ class CanopenTransport(Transport):
                            'true} for socketcand; empty = none'),
     )
     shared_by_drives = True    # one transport per channel; bus_node opens the channel once
+    connects_beside_the_cycle = True    # SDO per node: the others' RPDOs go on meanwhile
 
     def __init__(self, interface: str = 'virtual', channel: str = 'vcan0', bitrate: int = 0,
                  timeout: float = 0.1, eds_file: str = '', heartbeat_ms: int = 0,
