@@ -324,6 +324,22 @@ def test_tpdos_that_stop_while_the_heartbeat_goes_on_are_stale_not_status(make_c
     assert status.reconnects >= 1
 
 
+def test_tpdos_of_the_wrong_length_are_named_not_taken_for_silence(make_can_harness, caplog):
+    """TPDO1 keeps coming, three bytes short of its mapping: the reason says so."""
+    caplog.set_level('WARNING')
+    h = make_can_harness()
+    wheel, sim = h.wheels[1], h.sims[1]
+    bad_frames = wheel.wait_status(lambda s: s.online, 5.0, 'online').bad_frames
+    sim.tpdo_bytes = 3
+    status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline: TPDO1 malformed')
+    assert 'TPDO1 from node 1 has 3 bytes where its mapping needs' in status.stop_reason, \
+        status.stop_reason
+    assert status.bad_frames > bad_frames
+    assert any('has 3 bytes' in r.getMessage() for r in caplog.records)
+    sim.tpdo_bytes = None
+    wheel.wait_status(lambda s: s.online, 5.0, 'online again')
+
+
 def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
     """One producer per channel (two drive nodes here), 0x700 + 127, state 05, periodic."""
     h = make_can_harness(node_ids=(1, 2))

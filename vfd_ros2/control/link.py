@@ -33,6 +33,7 @@ class LinkSupervisor:
         self._failed_cycles = 0
         self._failed_this_cycle = False
         self._next_attempt = 0.0
+        self._connect_error = ''     # the last connect failure logged (each reason once)
 
     @property
     def connect_due(self) -> bool:
@@ -51,12 +52,17 @@ class LinkSupervisor:
         self._ever_online = True
         self.online = True
         self._failed_cycles = 0
-        self.error = ''
+        self.error = self._connect_error = ''
         log.info('%s online', self.name)
 
     def connect_failed(self, exc: VfdError) -> None:
         self.error = str(exc)
         self._next_attempt = self._clock() + self.retry_period
+        # Why a drive stays offline (a value it refuses at connect, a silent node)
+        # goes to the log once per reason, not once per attempt.
+        if self.error != self._connect_error:
+            self._connect_error = self.error
+            log.warning('%s: connect failed: %s', self.name, self.error)
 
     def cycle_ok(self) -> None:
         self._failed_cycles = 0

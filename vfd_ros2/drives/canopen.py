@@ -27,7 +27,14 @@ from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 from canopen.emcy import EmcyError
 
-from ..errors import CommTimeout, ParameterError, ProfileError, ProtocolException, TransportError
+from ..errors import (
+    BadFrame,
+    CommTimeout,
+    ParameterError,
+    ProfileError,
+    ProtocolException,
+    TransportError,
+)
 from ..profiles import (
     NO_FAULT,
     CanObject,
@@ -330,6 +337,10 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             if age > max(TPDO_PERIODS_MISSED * period, period + TPDO_SLACK) and (
                     not synchronous or
                     polls[1] > TPDO_PERIODS_MISSED * self.spec.transmission_type):
+                malformed = self.transport.tpdo_malformed(self.unit_id, number)
+                if malformed:       # frames come, of the wrong length: not silence
+                    raise BadFrame(f'{malformed} (PDO mapping 0x{0x1A00 + number - 1:04X} '
+                                   'not as written at connect?): its status is stale')
                 self.transport.count(self.unit_id, 'timeouts')
                 raise CommTimeout(f'no TPDO{number} from node {self.unit_id} for {age:.2f} s '
                                   f'(expected every {period * 1000:.0f} ms): its status is '

@@ -114,6 +114,7 @@ class SimulatedCanopenDrive:
         self._host_seen: float | None = None
         self.silent = False
         self.tpdos_off = False      # heartbeat and SDO go on, no TPDO (a dead PDO producer)
+        self.tpdo_bytes: int | None = None  # TPDOs cut to this length (a mapping gone wrong)
         self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
         self.emcy_sent: list[tuple[int, int, bytes]] = []
         self.rpdos_received = 0
@@ -506,7 +507,7 @@ class SimulatedCanopenDrive:
             raw = self._raw(entry >> 16, (entry >> 8) & 0xFF)
             value |= (raw & ((1 << bits) - 1)) << shift
             shift += bits
-        return cob, value.to_bytes((shift + 7) // 8, 'little')
+        return cob, value.to_bytes((shift + 7) // 8, 'little')[:self.tpdo_bytes]
 
     # --- frames from the bus ------------------------------------------------------------------
 
