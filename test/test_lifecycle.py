@@ -131,6 +131,32 @@ def test_without_auto_enable_activate_only_allows_motion(managed):
     wait_for(lambda: at_speed(h.sim, 1.0), 6.0, 'moving after ~/enable')
 
 
+def test_services_of_an_unconfigured_node_answer_at_once_and_never_run_later(managed):
+    """Unconfigured, every service answers "not configured" at once; none is queued.
+
+    Queued, they ran at the next configure, long after their callers gave up: a
+    fault found at connect (which latches until ~/reset_fault) was cleared by a
+    stale reset, and a parameter write landed.
+    """
+    from vfd_ros2.srv import SetDriveParameter
+    h = managed(auto_enable=False)
+    node = f'{h.namespace}/drive'
+    h.sim.inject_fault(7, 1)                          # on the drive before configure
+    for name in ('reset_fault', 'stop', 'disable'):
+        reply = h.trigger(name)
+        assert not reply.success and 'configure it first' in reply.message, (name, reply)
+    reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                   SetDriveParameter.Request(name='B04.02', value=7.0))
+    assert not reply.success and 'configure it first' in reply.message, reply.message
+    assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
+    status = h.wait_status(lambda s: s.online and s.fault, 5.0, 'the fault, latched')
+    h.wait_cycles(20)
+    assert h.wait_status(lambda s: True, 1.0).fault and h.sim.fault_code == 7, \
+        'a reset sent before configure cleared the fault'
+    assert h.sim.value('B04.02') != 7.0
+    assert status.fault_code == 7
+
+
 def test_configure_fails_while_the_drive_is_silent_and_errors_go_to_error_processing(managed):
     h = managed(auto_enable=True, action_timeout=0.5)
     node = f'{h.namespace}/drive'

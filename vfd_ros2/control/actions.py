@@ -4,14 +4,17 @@
 ``~/reset_fault`` and the parameter services do, as generators that yield
 between steps, so a slow verification (a stop waiting for the ramp) never holds
 up the watchdog or the status. ``ActionQueue`` takes requests from any thread
-and answers each exactly once; identical trigger requests waiting together get
-the one result (a burst of ``~/enable`` calls is one enable).
+and answers each exactly once, in the order they came; identical trigger requests
+waiting next to each other get the one result (a burst of ``~/enable`` calls is
+one enable), never one that came after another kind (stop, enable, stop: the
+last stop runs last).
 """
 
 from __future__ import annotations
 
 import logging
 import queue
+import threading
 from concurrent.futures import Future
 from typing import Callable, Generator, Iterator
 
@@ -24,6 +27,10 @@ log = logging.getLogger(__name__)
 
 Action = Generator[None, None, ActionResult]
 
+#: the answer while no control loop serves the queue (before it starts, after it ends)
+NOT_SERVED = ('no control loop runs this drive (a managed node: configure it first; '
+              'or the driver is shutting down)')
+
 
 class ActionQueue:
     """Requests from any thread; ``advance`` (loop thread) runs the current one a step."""
@@ -35,11 +42,32 @@ class ActionQueue:
             queue.SimpleQueue()
         self._backlog: list[tuple[str | None, Callable[[], Action], Future]] = []
         self._current: tuple[Iterator[None], list[Future]] | None = None
+        # Why requests are answered at once instead of queued (None: a loop serves them).
+        # A request queued while no loop runs would wait unanswered, then run whenever
+        # one starts, long after its caller gave up (a stale fault reset, say).
+        self._refusal: str | None = NOT_SERVED
+        self._gate = threading.Lock()
+
+    def open(self) -> None:
+        """Queue requests from now on: a loop serves them (call before it advances)."""
+        with self._gate:
+            self._refusal = None
+
+    def close(self, reason: str) -> None:
+        """No loop serves the queue any more: answer everything waiting, refuse the rest."""
+        with self._gate:
+            self._refusal = NOT_SERVED
+        self.fail_all(reason)
 
     def submit(self, key: str | None, factory: Callable[[], Action]) -> Future:
-        """Queue an action; requests with the same ``key`` waiting together share one run."""
+        """Queue an action; a run of requests with the same ``key`` shares one action."""
         future: Future = Future()
-        self._incoming.put((key, factory, future))
+        with self._gate:
+            refusal = self._refusal
+            if refusal is None:
+                self._incoming.put((key, factory, future))
+                return future
+        future.set_result(ActionResult(False, refusal))
         return future
 
     def _take_incoming(self) -> None:
@@ -62,8 +90,14 @@ class ActionQueue:
             key, factory, future = self._backlog.pop(0)
             futures = [future]
             if key is not None:
-                futures += [f for k, _, f in self._backlog if k == key]
-                self._backlog = [item for item in self._backlog if item[0] != key]
+                # Only the same requests right behind it: merging one from behind
+                # another kind would run it early (disable, enable, disable: the
+                # acknowledged last disable undone by the enable).
+                same = 0
+                while same < len(self._backlog) and self._backlog[same][0] == key:
+                    same += 1
+                futures += [f for _, _, f in self._backlog[:same]]
+                del self._backlog[:same]
             try:
                 self._current = (factory(), futures)
             except Exception as exc:  # noqa: BLE001 - a bug must not lose the reply

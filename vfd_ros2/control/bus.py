@@ -377,6 +377,8 @@ class Bus:
                                    self.finish, self._clock, preempt=self.preempt,
                                    preempt_at=self.preempt_at,
                                    priority=int(self.config.settings.get('realtime_priority', 0)))
+            for controller in self.controllers.values():
+                controller.open_for_actions()
             self._loop.start()
             for controller in self.controllers.values():
                 controller.loop_notes = self._loop.notes

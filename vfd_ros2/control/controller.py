@@ -311,6 +311,7 @@ class DriveController:
                                    preempt_at=self.preempt_at,
                                    priority=self.config.realtime_priority)
             self.request_preempt = self._loop.request_preempt
+            self.open_for_actions()
             self._loop.start()
             self.loop_notes = self._loop.notes
 
@@ -442,7 +443,11 @@ class DriveController:
                 log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
         self.drive.close()
         self.link.closed()
-        self._actions.fail_all('the driver is shutting down')
+        self._actions.close('the control loop ended before this action ran')
+
+    def open_for_actions(self) -> None:
+        """Queue service actions from now on: a loop (its own or a bus's) serves them."""
+        self._actions.open()
 
     def mark_closed(self) -> None:
         """Publish an offline snapshot after the loop ended (a managed node's cleanup).
