@@ -122,6 +122,27 @@ def test_nan_and_inf_commands_are_rejected_and_do_not_feed_watchdog(make_harness
     assert h.sim.run_requested is False
 
 
+def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harness):
+    """A drive that refuses its setpoint write still gets the watchdog's stop.
+
+    The refusal (an exception reply to every write) is reported; the stop was
+    lost behind the refused zero setpoint before, and the motor ran on.
+    """
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'running at 1 rad/s')
+    h.sim.refuse_writes(['P07.33'])
+    status = h.wait_status(lambda s: any('command write refused' in u for u in s.unavailable),
+                           3.0, 'the refusal in ~/status')
+    assert status.online and status.running
+    h.stop_stream()                                    # the planner dies
+    h.wait_status(lambda s: s.watchdog_tripped, 3.0, 'watchdog tripped')
+    wait_for(lambda: not h.sim.run_requested, 2.0, 'the stop written despite the refusal')
+    status = h.wait_status(lambda s: not s.running, 5.0, 'the drive stopped')
+    assert any('command write refused' in u for u in status.unavailable), status.unavailable
+
+
 def test_fault_is_published_with_text_and_reset_is_verified(make_harness):
     h = make_harness(node_parameters={'auto_enable': True})
     h.stream(1.0)

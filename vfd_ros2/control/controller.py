@@ -116,6 +116,7 @@ class DriveController:
         self._cycle = 0
         self._reading = Reading()
         self._settings_refused: tuple[str, ...] = ()
+        self._command_refused = ''      # why the last command write was refused, if it was
         self._actions = ActionQueue(drive.hardware_id)
         self.services = ServiceActions(
             drive, self.intent, lambda: self._reading, self._commands_fresh,
@@ -478,7 +479,18 @@ class DriveController:
             self._command_pending = False
         run = decide(self.intent, self._conditions())[0] is RunState.RUNNING
         reassert, self.services.reassert_idle = self.services.reassert_idle and not run, False
-        self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
+        try:
+            self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
+        except ProtocolException as exc:
+            # The drive answered but refused: not a link failure, and not to be lost in
+            # link.error while online. Shown in ~/status and /diagnostics (WARN) until
+            # a command write succeeds; logged once per reason.
+            refused = f'command write refused: {exc}'
+            if refused != self._command_refused:
+                log.warning('%s: %s', self.drive.hardware_id, refused)
+            self._command_refused = refused
+            raise
+        self._command_refused = ''
         self._run_written = run
 
     def _write_setpoints(self) -> None:
@@ -648,7 +660,8 @@ class DriveController:
             loop_errors=self.loop_errors,
             link_error=self.link.error,
             protection=self.protection_applied or self.protection,
-            unavailable=tuple(reading.unavailable.values()) + self._settings_refused,
+            unavailable=tuple(reading.unavailable.values()) + self._settings_refused
+            + ((self._command_refused,) if self._command_refused else ()),
             link_notes=self.drive.transport.link_notes + self.loop_notes,
         )
         with self._lock:

@@ -352,9 +352,17 @@ class ModbusDrive(DriveOnLink):
         drive's own comm-loss timer.
         """
         raw, run_action = self._native_setpoint(velocity if run else 0.0)
-        self.write_raw(self._setpoint, raw)
-        self.last_setpoint_raw = raw
         wanted = run_action if run else idle_action
+        try:
+            self.write_raw(self._setpoint, raw)
+        except ProtocolException:
+            if run:
+                raise           # never (re)start a drive that refuses its setpoint
+            # Idle: the stop must go out even when the zero setpoint is refused (the
+            # watchdog's, the shutdown's); the refusal is reported after it.
+            self.send_command(wanted)
+            raise
+        self.last_setpoint_raw = raw
         if wanted == self.asserted_command and not reassert:
             return
         if run and self.asserted_command not in ('run', 'run_reverse') and \
