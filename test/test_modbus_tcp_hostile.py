@@ -214,3 +214,36 @@ def test_a_slave_that_closes_after_every_reply_is_reconnected_not_failed(slave, 
             assert transport.read_registers(1, address, 1) == [address]
         time.sleep(0.05)                     # and after a pause
     assert transport.stats.errors == 0, transport.stats
+
+
+@pytest.mark.parametrize('code, lasting', [(0x0B, False), (0x0A, False), (2, True)])
+def test_only_a_not_readable_exception_takes_a_status_value_out_of_the_poll(slave, code,
+                                                                             lasting):
+    """A gateway whose RS-485 drive is gone for a moment answers 0x0B (0x0A: no path).
+
+    Such a refusal passes: it is a failed exchange (the drive goes offline after
+    comm_loss_threshold cycles and is reconnected), never a value refused until
+    the next connect: two of them used to leave the drive blocked, online and
+    answering, until the node restarted. Illegal address (2) is the drive's
+    lasting answer: that value is polled no more.
+    """
+    from vfd_ros2.control.factory import build_controller
+    drive = build_controller({'drive.profile': 'imo_hd2', 'transport.type': 'modbus_tcp',
+                              'transport.host': '127.0.0.1', 'transport.port': slave.port,
+                              'transport.timeout': TIMEOUT}).drive
+    drive.open()
+    try:
+        assert not drive.poll(0).unavailable
+        slave.behaviour = lambda t, u, p, c: _mbap(t, u, bytes([p[0] | 0x80, code]))
+        for cycle in (1, 2, 3):
+            if lasting:
+                drive.poll(cycle)
+            else:
+                with pytest.raises(TransportError, match='failed exchange'):
+                    drive.poll(cycle)
+        slave.behaviour = None
+        reading = drive.poll(4)
+        assert bool(reading.unavailable) is lasting and bool(reading.unsafe) is lasting, \
+            reading.unavailable
+    finally:
+        drive.close()

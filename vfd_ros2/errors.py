@@ -40,6 +40,10 @@ class BadFrame(TransportError):
     """A reply arrived but was malformed (CRC, length, wrong unit id)."""
 
 
+class PassingRefusal(TransportError):
+    """The drive answered an exception that may pass (busy, a gateway's): a failed exchange."""
+
+
 class ProtocolException(VfdError):
     """The drive answered with a protocol exception (e.g. a Modbus exception code).
 

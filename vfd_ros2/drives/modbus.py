@@ -10,7 +10,13 @@ import math
 import time
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
-from ..errors import BadFrame, ParameterError, ProfileError, ProtocolException
+from ..errors import (
+    BadFrame,
+    ParameterError,
+    PassingRefusal,
+    ProfileError,
+    ProtocolException,
+)
 from ..profiles import (
     DirectionMode,
     Parameter,
@@ -246,7 +252,9 @@ class ModbusDrive(DriveOnLink):
         """One exchange; a garbled reply is retried once at once (the line resyncs).
 
         A timeout is not retried: it already cost a full timeout, and the next
-        cycle asks again anyway.
+        cycle asks again anyway. An exception reply is the drive's answer
+        (ProtocolException) only where its manual gives the code a lasting
+        meaning (``ModbusSpec.lasting_refusal``); any other is a failed exchange.
         """
         try:
             try:
@@ -254,7 +262,13 @@ class ModbusDrive(DriveOnLink):
             except BadFrame:
                 return call()
         except ProtocolException as exc:
-            raise self.explain(exc) from exc
+            explained = self.explain(exc)
+            if not self.profile.modbus.lasting_refusal(exc.code):
+                # Busy, a device failure, a gateway whose drive is silent: it may pass,
+                # so a failed exchange (offline after comm_loss_threshold, reconnected),
+                # never a status value refused until the next connect.
+                raise PassingRefusal(f'{explained} (taken as a failed exchange)') from exc
+            raise explained from exc
 
     def _read(self, address: int, count: int) -> list[int]:
         limit = self.profile.modbus.max_read_registers
@@ -355,11 +369,11 @@ class ModbusDrive(DriveOnLink):
         wanted = run_action if run else idle_action
         try:
             self.write_raw(self._setpoint, raw)
-        except ProtocolException:
+        except (ProtocolException, PassingRefusal):
             if run:
                 raise           # never (re)start a drive that refuses its setpoint
-            # Idle: the stop must go out even when the zero setpoint is refused (the
-            # watchdog's, the shutdown's); the refusal is reported after it.
+            # Idle: the stop must go out even when the drive refuses the zero setpoint
+            # (the watchdog's, the shutdown's); the refusal is reported after it.
             self.send_command(wanted)
             raise
         self.last_setpoint_raw = raw

@@ -13,6 +13,7 @@ import dataclasses
 import enum
 import math
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Mapping
 
 from ..errors import ParameterError, quote
@@ -151,6 +152,18 @@ class Persistence:
                                           for low, high in self.applies_to)
 
 
+#: the Modbus application protocol's exception code for each situation, where a
+#: manual names none (V1.1b3, 7: 01 illegal function, 02 illegal data address, 03
+#: illegal data value, a count out of range included; 04 server device failure)
+STANDARD_EXCEPTION_FOR: Mapping[str, int] = MappingProxyType({
+    'illegal_function': 1, 'illegal_address': 2, 'illegal_value': 3,
+    'too_many_registers': 3, 'read_only': 2, 'stopped_only': 4,
+})
+#: the situations in which a drive's refusal lasts: the same request is refused again
+LASTING = ('illegal_function', 'illegal_address', 'illegal_value', 'too_many_registers',
+           'read_only', 'stopped_only')
+
+
 @dataclass(frozen=True)
 class ModbusSpec:
     """Modbus limits and conventions of the drive family."""
@@ -165,6 +178,26 @@ class ModbusSpec:
     # What the drive answers in each situation (used by the simulated twin).
     exception_for: Mapping[str, int] = field(default_factory=dict)
     persistence: Persistence = Persistence()
+
+    def exception_code(self, situation: str) -> int:
+        """Return the code this drive answers in ``situation`` (its manual's, else standard)."""
+        codes = self.exception_for
+        code = codes.get(situation)
+        if code is None and situation == 'too_many_registers':
+            code = codes.get('illegal_value', codes.get('illegal_address'))
+        if code is None and situation in ('read_only', 'stopped_only'):
+            code = codes.get('illegal_address')
+        return STANDARD_EXCEPTION_FOR[situation] if code is None else code
+
+    def lasting_refusal(self, code: int) -> bool:
+        """Return whether exception ``code`` is this drive's answer to the request itself.
+
+        The codes it answers to an illegal function, address, value or count, a
+        read-only parameter or one writable only while stopped are: asked again, it
+        refuses again. Any other code (device failure, busy, a gateway whose drive
+        does not answer, one the manual does not list) may pass.
+        """
+        return any(code == self.exception_code(situation) for situation in LASTING)
 
 
 class DirectionMode(str, enum.Enum):

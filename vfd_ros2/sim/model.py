@@ -40,12 +40,6 @@ PHYSICAL_ROLES = frozenset({
     'fault_code', 'fault_subcode', 'warning_code', 'warning_subcode', 'position'})
 
 #: Modbus specification codes used where a profile does not say otherwise
-STANDARD_EXCEPTION_FOR = {
-    'illegal_function': 1, 'illegal_address': 2, 'illegal_value': 3,
-    'too_many_registers': 3, 'read_only': 2, 'stopped_only': 4,
-}
-
-
 class SimException(Exception):
     """A request the simulated drive answers with a protocol exception."""
 
@@ -123,15 +117,7 @@ class SimulatedDrive:
 
     def exception(self, situation: str) -> SimException:
         """Return the exception this drive answers in ``situation`` (see modbus.exception_for)."""
-        codes = self.profile.modbus.exception_for
-        code = codes.get(situation)
-        if code is None and situation == 'too_many_registers':
-            code = codes.get('illegal_value', codes.get('illegal_address'))
-        if code is None and situation in ('read_only', 'stopped_only'):
-            code = codes.get('illegal_address')
-        if code is None:
-            code = STANDARD_EXCEPTION_FOR[situation]
-        return SimException(situation, code)
+        return SimException(situation, self.profile.modbus.exception_code(situation))
 
     # --- requests -----------------------------------------------------------------
 
