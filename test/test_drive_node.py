@@ -143,6 +143,30 @@ def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harne
     assert any('command write refused' in u for u in status.unavailable), status.unavailable
 
 
+def test_a_drive_that_loses_its_run_command_is_reported_and_not_restarted_behind_it(
+        make_harness):
+    """A drive that stops by itself while told to run is reported, not restarted.
+
+    It reset, or an operator pressed STOP at its keypad: ~/status says blocked and
+    why (it said "running", diagnostics OK), and the run command is written again
+    only by ~/enable.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'action_timeout': 0.5})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'running at 1 rad/s')
+    with h.sim.lock:
+        h.sim.run_requested = False                  # the drive's own stop
+    status = h.wait_status(lambda s: s.state == 'blocked', 3.0, 'blocked')
+    assert 'told to run' in status.stop_reason and '~/enable' in status.stop_reason
+    h.wait_cycles(30)
+    assert not h.sim.run_requested, 'restarted behind the local stop'
+    reply = h.trigger('enable')
+    assert reply.success, reply.message
+    h.wait_status(lambda s: s.state == 'running' and s.running and
+                  abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running again')
+
+
 def test_fault_is_published_with_text_and_reset_is_verified(make_harness):
     h = make_harness(node_parameters={'auto_enable': True})
     h.stream(1.0)

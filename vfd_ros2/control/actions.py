@@ -160,6 +160,8 @@ class ServiceActions:
         self._clock = clock
         #: set when the idle command must be written again now, whatever was sent
         self.reassert_idle = False
+        #: set by ~/enable: the run command is written again (a drive that lost it)
+        self.reassert_run = False
         self._steps: dict[str, Callable[..., Action]] = {
             'enable': self.enable, 'disable': self.disable, 'stop': self.stop,
             'reset_fault': self.reset_fault, 'get_parameter': self.get_parameter,
@@ -195,6 +197,7 @@ class ServiceActions:
             return ActionResult(False, f'not enabled: {reading.unsafe}')
         intent = self.intent
         intent.enabled, intent.stopped, intent.idle_action = True, False, 'stop'
+        self.reassert_run = True    # a drive that lost its run command gets it again
         ok = yield from self._wait_for(lambda: self._flag('ready', True) or
                                        self._flag('running', False), self.action_timeout)
         if not ok:

@@ -38,13 +38,10 @@ from .joint import JointTracker, joint_config
 from .link import LinkSupervisor
 from .loop import CycleLoop
 from .permit import Conditions, Intent, decide
-from .state import ActionResult, CommandOutcome, DriveState, RunState
+from .state import STATUS_NOT_READ, ActionResult, CommandOutcome, DriveState, RunState
 from .watchdog import CommandWatchdog
 
 log = logging.getLogger(__name__)
-
-#: why a drive that just connected may not run yet (its ``stop_reason`` until then)
-STATUS_NOT_READ = 'no status read since the drive connected'
 
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
@@ -130,6 +127,8 @@ class DriveController:
         self._run_written = False        # what the last command write asked: run or idle
         self._preempted_deadline: float | None = None   # watchdog expiry already acted on
         self._last_running = False
+        self._not_running_since: float | None = None  # told to run, not running since
+        self._lost_run = ''             # why a drive told to run does not, once it is clear
         self._unexpected_starts = 0
         self._check_comm_fault = False   # the first reading after a connect is not read yet
         self._comm_fault_grace_until = -math.inf
@@ -478,7 +477,9 @@ class DriveController:
             velocity = self._velocity
             self._command_pending = False
         run = decide(self.intent, self._conditions())[0] is RunState.RUNNING
-        reassert, self.services.reassert_idle = self.services.reassert_idle and not run, False
+        services = self.services
+        reassert = services.reassert_run if run else services.reassert_idle
+        services.reassert_idle = services.reassert_run = False
         try:
             self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
         except ProtocolException as exc:
@@ -595,6 +596,22 @@ class DriveController:
                             'written again', self.drive.hardware_id,
                             decide(self.intent, self._conditions())[0].label)
         self._last_running = running
+        # The other way round: told to run, the drive does not (it reset, was stopped
+        # at its keypad, an inhibit): report it rather than show "running" with OK
+        # diagnostics. It is not restarted behind an operator's back: ~/enable writes
+        # the run command again.
+        if running or not self._run_written:
+            self._not_running_since, self._lost_run = None, ''
+            return
+        now = self._clock()
+        if self._not_running_since is None:
+            self._not_running_since = now
+        elif not self._lost_run and now - self._not_running_since > self.config.action_timeout:
+            self._lost_run = (f'told to run, the drive has reported not running for '
+                              f'{self.config.action_timeout:g} s (it reset, was stopped '
+                              'locally, or is inhibited): call ~/enable to write the run '
+                              'command again')
+            log.warning('%s: %s', self.drive.hardware_id, self._lost_run)
 
     # --- snapshot ---------------------------------------------------------------
 
@@ -612,9 +629,9 @@ class DriveController:
             rejected, clamped = self._rejected, self._clamped
         run_state, reason = decide(self.intent, conditions)
         commanded = self._velocity if run_state is RunState.RUNNING else 0.0
-        if run_state is RunState.RUNNING and reading.stuck:
+        if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):
             # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).
-            run_state, reason = RunState.BLOCKED, reading.stuck
+            run_state, reason = RunState.BLOCKED, reading.stuck or self._lost_run
         flags = reading.flags
         measured = reading.measured_velocity
         joint = self.joint

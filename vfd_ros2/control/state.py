@@ -11,6 +11,9 @@ from typing import Mapping, NamedTuple
 from ..drives import HostLossProtection, ParameterValue
 from ..profiles import NO_FAULT, FaultInfo
 
+#: why a drive that just connected may not run yet (its ``stop_reason`` until then)
+STATUS_NOT_READ = 'no status read since the drive connected'
+
 
 class RunState(enum.IntEnum):
     """Why the drive does or does not follow velocity commands (DriveStatus.RUN_STATE_*)."""

@@ -379,7 +379,7 @@ class ModbusDrive(DriveOnLink):
         self.last_setpoint_raw = raw
         if wanted == self.asserted_command and not reassert:
             return
-        if run and self.asserted_command not in ('run', 'run_reverse') and \
+        if run and (reassert or self.asserted_command not in ('run', 'run_reverse')) and \
                 self.profile.control.run_edge_from is not None:
             self.write_raw(self._command, self.profile.control.run_edge_from)
         self.send_command(wanted)

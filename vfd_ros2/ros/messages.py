@@ -10,7 +10,7 @@ from sensor_msgs.msg import JointState
 
 from vfd_ros2.msg import DriveFault, DriveStatus
 
-from ..control.state import DriveState
+from ..control.state import STATUS_NOT_READ, DriveState, RunState
 from ..profiles import FaultInfo
 
 
@@ -111,6 +111,10 @@ def _warnings(state: DriveState) -> list[str]:
     warnings = []
     if state.warning:
         warnings.append(f'warning {state.warning_code}.{state.warning_subcode}')
+    if state.run_state is RunState.BLOCKED and state.stop_reason != STATUS_NOT_READ:
+        # commanded to run, it does not (a CiA 402 drive stuck, a lost run command);
+        # not the one cycle after a connect before the first status read
+        warnings.append(f'blocked: {state.stop_reason}')
     if state.loop_errors:
         warnings.append(f'{state.loop_errors} internal errors in the drive loop (a bug)')
     protection = state.protection
