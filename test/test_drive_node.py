@@ -264,6 +264,13 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
         ('acceleration_time', math.inf): 'not a finite number',
         ('acceleration_time', 1.25): 'resolution',
         ('stop_mode', 7.0): 'above the maximum',
+        # What the node's own link and velocity scaling depend on: written, the drive
+        # stops answering here, or the wheel runs at another speed than commanded
+        # (D00.05 = 2660 rpm made it run at twice the command, beyond max_velocity).
+        ('C02.02', 9.0): 'how this link reaches the drive',
+        ('C02.00', 3.0): 'how this link reaches the drive',
+        ('D00.05', 2660.0): 'motor.rated_speed_rpm',
+        ('C02.06', 1.0): 'the driver writes percent',
     }
     for (name, value), why in cases.items():
         reply = h.call(SetDriveParameter, 'set_drive_parameter',
@@ -273,6 +280,10 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
     unknown = h.call(GetDriveParameter, 'get_drive_parameter',
                      GetDriveParameter.Request(name='nope'))
     assert not unknown.success and 'unknown parameter' in unknown.message
+    for code in ('C02.02', 'D00.05', 'C02.06'):
+        got = h.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name=code))
+        assert got.success and not got.writable, (code, got.message)
     changed = {a for a in before if h.sim.words.get(a) != before[a]}
     writable_changed = {a for a in changed
                         if (p := h.profile.parameter_at(a)) is not None and p.writable and

@@ -32,7 +32,8 @@ from typing import Callable
 
 from ..drives import Drive, HostLossProtection, Reading
 from ..errors import ParameterError, ProtocolException, TransportError, VfdError, quote
-from ..protocol.scaling import VelocityScaling
+from ..profiles import Parameter
+from ..protocol.scaling import SpeedUnit, VelocityScaling
 from .actions import ActionQueue, ServiceActions
 from .joint import JointTracker, joint_config
 from .link import LinkSupervisor
@@ -92,6 +93,31 @@ class ControllerConfig:
             raise ParameterError(f'realtime_priority must be 0..99, got {self.realtime_priority}')
 
 
+def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
+    """Return the drive parameters a running node depends on, with why: code -> why.
+
+    Its link (address, baud rate, framing: written, the drive stops answering on
+    this link) and its velocity scaling (the rated speed where a speed is in
+    percent, the pole pairs where it is in Hz: written, the wheel no longer runs
+    at the commanded speed, and max_velocity no longer bounds it). A commissioning
+    tool may write them (vfd_params); the node's parameter services refuse them.
+    """
+    found = {}
+    for code in getattr(drive, 'link_parameters', ()):    # (a plugin may not say)
+        found[code] = ('it sets how this link reaches the drive (written, the drive stops '
+                       "answering here): change it with vfd_params or at the keypad, with "
+                       "the node's transport settings")
+    velocity = drive.profile.velocity
+    units = {velocity.setpoint_unit, velocity.feedback_unit}
+    for code, unit, setting in ((velocity.rated_speed, SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
+                                (velocity.pole_pairs, SpeedUnit.HZ, 'motor.pole_pairs')):
+        if code and unit in units:
+            found[code] = (f"the node's velocity scaling uses it ({setting}): written here, the "
+                           'wheel would no longer run at the commanded speed; change it with '
+                           f'vfd_params or at the keypad, with {setting}, and restart the node')
+    return found
+
+
 class DriveController:
     """Runs one drive: connect, command, poll, watchdog, service actions."""
 
@@ -115,6 +141,7 @@ class DriveController:
         self._settings_refused: tuple[str, ...] = ()
         self._command_refused = ''      # why the last command write was refused, if it was
         self._actions = ActionQueue(drive.hardware_id)
+        self._driver_settings = settings_the_driver_depends_on(drive)
         self.services = ServiceActions(
             drive, self.intent, lambda: self._reading, self._commands_fresh,
             self.check_parameter_write, config.action_timeout, config.stop_timeout, clock)
@@ -216,10 +243,17 @@ class DriveController:
         """Return whether the parameter services would write this parameter at all."""
         profile = self.drive.profile
         parameter = profile.parameter(key)
-        managed = self.config.apply_commissioning and any(
-            item.code == parameter.code for item in profile.commissioning)
         return parameter.writable and parameter.code not in profile.control_owned and \
-            not managed
+            not self._refused_while_driven(parameter)
+
+    def _refused_while_driven(self, parameter: Parameter) -> str:
+        """Return why the node refuses to write ``parameter`` itself ('' if it does not)."""
+        if self.config.apply_commissioning:
+            for item in self.drive.profile.commissioning:
+                if item.code == parameter.code:
+                    return (f'it is set to {item.value:g} at every connect ({item.why}): '
+                            'set apply_commissioning false to manage it yourself')
+        return self._driver_settings.get(parameter.code, '')
 
     def check_parameter_write(self, key: str, value: float) -> None:
         """Refuse a parameter write that must not reach the loop (ParameterError says why).
@@ -229,14 +263,10 @@ class DriveController:
         anything is queued; whether the drive is running is checked again when
         the write is done.
         """
-        profile = self.drive.profile
-        parameter = profile.parameter(key)
-        if self.config.apply_commissioning:
-            for item in profile.commissioning:
-                if item.code == parameter.code:
-                    raise ParameterError(
-                        f'{parameter.code} is set to {item.value:g} at every connect '
-                        f'({item.why}): set apply_commissioning false to manage it yourself')
+        parameter = self.drive.profile.parameter(key)
+        refused = self._refused_while_driven(parameter)
+        if refused:
+            raise ParameterError(f'{parameter.code} is not written by this node: {refused}')
         self.drive.check_write(key, value, running=False)
 
     def reconfigure(self, **changes: object) -> ControllerConfig:

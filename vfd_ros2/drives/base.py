@@ -147,6 +147,11 @@ class DriveOnLink:
         return f'{self.profile.name}@{self.transport.description}#{self.unit_id}'
 
     @property
+    def link_parameters(self) -> tuple[str, ...]:
+        """The drive parameters that set how this link reaches it (none known here)."""
+        return ()
+
+    @property
     def stats(self) -> TransportStats:
         return self.transport.stats_for(self.unit_id)
 
@@ -211,6 +216,7 @@ class Drive(Protocol):
     transport: Transport
     last_setpoint_raw: int
     display_period: float      # see DriveOnLink
+    link_parameters: tuple[str, ...]    # see DriveOnLink
 
     @classmethod
     def link_settings(cls, profile: Profile, settings: Mapping[str, Any]) -> dict[str, Any]:

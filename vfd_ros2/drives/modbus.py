@@ -103,6 +103,11 @@ class ModbusDrive(DriveOnLink):
         self.asserted_command: str | None = None
         self.last_setpoint_raw = 0
 
+    @property
+    def link_parameters(self) -> tuple[str, ...]:
+        """Its address, baud rate, framing, IP settings (the profile's identify section)."""
+        return self.profile.identify.link_parameters if self.profile.identify else ()
+
     def _plan_reads(self, split: ReadBlock | None = None) -> None:
         """Plan the status reads around refused registers; ``split`` is read span by span."""
         profile = self.profile
