@@ -595,3 +595,16 @@ def test_value_type_layout():
     assert ValueType.UINT16.register_count == 1 and ValueType.INT32.register_count == 2
     assert ValueType.INT16.bounds == (-32768, 32767)
     assert ValueType.UINT32.bounds == (0, 4294967295)
+
+
+@pytest.mark.parametrize('name', SHIPPED)
+def test_values_come_on_the_resolution_without_float_noise(name):
+    """3 x 0.1 s reads as 0.3 s (it read 0.30000000000000004), and goes back to 3."""
+    profile = shipped_profile(name)
+    for parameter in profile.parameters.values():
+        for raw in (1, 3, 7, 123):
+            value = parameter.from_raw(raw)
+            assert value == float(f'{raw * parameter.scale:.12g}'), (parameter.code, value)
+            if parameter.maximum is not None and parameter.minimum is not None and \
+                    parameter.minimum <= value <= parameter.maximum and not parameter.options:
+                assert parameter.to_raw(value) == raw, parameter.code

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -37,6 +38,12 @@ class Access(str, enum.Enum):
     READ_ONLY = 'ro'
     READ_WRITE = 'rw'
     WRITE_WHEN_STOPPED = 'rw_stopped'
+
+
+@functools.lru_cache(maxsize=64)
+def _decimals(scale: float) -> int:
+    """Return the decimals that write ``scale`` exactly (0.1: 1, 0.05: 2; at most 12)."""
+    return next((d for d in range(13) if round(scale, d) == scale), 12)
 
 
 @dataclass(frozen=True)
@@ -71,8 +78,13 @@ class Parameter:
         return self.access is not Access.READ_ONLY
 
     def from_raw(self, raw: int) -> float:
-        """Engineering value of a raw (already sign-decoded) integer."""
-        return raw * self.scale
+        """Engineering value of a raw (already sign-decoded) integer.
+
+        On the resolution's decimals: 3 x 0.1 s is 0.3 s, not 0.30000000000000004
+        (an integrator comparing a read value with what was written gets equality).
+        """
+        value = raw * self.scale
+        return value if self.scale == 1.0 else round(value, _decimals(self.scale))
 
     def to_raw(self, value: float) -> int:
         """Validate an engineering value and return the raw integer to write.
