@@ -156,6 +156,10 @@ def test_descriptors_tell_live_from_read_only_with_ranges(make_harness):
     assert describe(h.tester, node, 'transport.port').read_only
     timeout = describe(h.tester, node, 'transport.timeout')
     assert timeout.read_only and timeout.floating_point_range[0].to_value == 10.0
+    # rclpy's own use_sim_time: refused at run time, so described read-only too
+    sim_time = describe(h.tester, node, 'use_sim_time')
+    assert sim_time.read_only and 'start-up' in sim_time.description
+    assert not set_parameter(h.tester, node, 'use_sim_time', False).successful
 
 
 @pytest.fixture

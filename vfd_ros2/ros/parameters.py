@@ -73,7 +73,25 @@ class LiveParameters:
         self.live = set(live)
         self.ranges = ranges or {}
         self._apply = apply
+        self._describe_the_others_read_only()       # (before this callback would refuse it)
         node.add_on_set_parameters_callback(self)
+
+    def _describe_the_others_read_only(self) -> None:
+        """Declare read-only what rclpy declared writable and this node does not apply.
+
+        ``use_sim_time`` (rclpy's own) is set at start-up only (``-p``); described
+        writable, tools offered a change that this callback always refuses.
+        """
+        for name in self.node.list_parameters([], 0).names:
+            if name in self.live:
+                continue
+            current = self.node.describe_parameter(name)
+            if current.read_only:
+                continue
+            text = current.description
+            self.node.set_descriptor(name, ParameterDescriptor(
+                description=(text + ' ' if text else '') + '[set at start-up only]',
+                type=current.type, read_only=True))
 
     def __call__(self, parameters: list[Parameter]) -> SetParametersResult:
         changes: dict[str, Any] = {}
