@@ -317,3 +317,44 @@ def test_writes_stay_right_while_the_reused_requests_are_replaced(tmp_path, monk
     finally:
         transport.close()
         line.stop()
+
+
+def test_a_reply_from_another_unit_is_named_in_the_timeout(tmp_path):
+    """A drive set to another address answers a request to unit 1 as unit 2.
+
+    Discarded (it cannot be unit 1's reply), the wait times out: the error says a
+    reply from unit 2 came instead, not only 'no reply' (a dead cable, it read).
+    """
+    import os
+    import pty
+    import struct
+    import threading
+    import tty
+
+    from vfd_ros2.protocol.modbus_crc import crc16
+    master, slave = pty.openpty()
+    tty.setraw(master)
+    stop = threading.Event()
+
+    def answer_as_unit_2() -> None:
+        while not stop.is_set():
+            try:
+                request = os.read(master, 256)
+            except OSError:
+                return
+            if len(request) >= 8:
+                pdu = bytes([2, 3, 2, 0x12, 0x34])
+                os.write(master, pdu + struct.pack('<H', crc16(pdu)))
+    thread = threading.Thread(target=answer_as_unit_2, daemon=True)
+    thread.start()
+    transport = ModbusRtuTransport(os.ttyname(slave), 115200, timeout=TIMEOUT)
+    try:
+        with pytest.raises(CommTimeout, match='a reply from unit 2 came instead'):
+            transport.read_registers(1, 0x100, 1)
+    finally:
+        transport.close()
+        stop.set()
+        os.close(master)
+        os.close(slave)
+        thread.join(1.0)
+    assert transport.stats_for(1).timeouts == 1

@@ -219,8 +219,7 @@ class _PymodbusTransport(_ModbusTransport):
                 raise BadFrame(f'{self._what(request)}: malformed reply '
                                f'{self._received.hex(" ")}') from exc
             self.count(unit, 'timeouts')
-            raise CommTimeout(f'{self._what(request)}: no reply from '
-                              f'{self.description}') from exc
+            raise CommTimeout(f'{self._what(request)}: {exc} from {self.description}') from exc
         except (ModbusException, OSError, ValueError) as exc:
             self.count(unit, 'bad_frames')
             self.close()
@@ -388,8 +387,7 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
                                  f'{exc}') from exc
         except LinkTimeout as exc:
             self.count(unit, 'timeouts')
-            raise CommTimeout(f'{self._what(request)}: no reply from '
-                              f'{self.description}') from exc
+            raise CommTimeout(f'{self._what(request)}: {exc} from {self.description}') from exc
         except LinkBadFrame as exc:
             self.count(unit, 'bad_frames')
             raise BadFrame(f'{self._what(request)}: {exc} {exc.data.hex(" ")}') from exc

@@ -200,12 +200,15 @@ class RtuLink:
             if self.echo:
                 self._check_echo(frame, sent_at)
             deadline = sent_at + len(frame) * self.char_time + self.timeout
+            others: list[int] = []      # units whose frames came instead of this one's
             while True:
                 data, size = self._read_frame(deadline, reply_bytes)
                 if not data:
                     self._hold[unit] = time.monotonic() + self.late_reply_guard
                     self._quiet_from = time.monotonic()
-                    raise LinkTimeout('no reply')
+                    raise LinkTimeout('no reply' if not others else
+                                      f'no reply (a reply from unit {others[-1]} came instead: '
+                                      f'a drive at another address than {unit}?)')
                 pdu = self._decode(data, size)
                 if pdu is None:
                     self._resync()
@@ -213,6 +216,8 @@ class RtuLink:
                 if pdu.dev_id != unit or (pdu.function_code & 0x7F) != request.function_code:
                     # A late reply to an earlier request (of this or another unit).
                     self._on_discard(pdu.dev_id, 'late')
+                    if pdu.dev_id != unit:
+                        others.append(pdu.dev_id)
                     continue
                 trailing = self._silence_after()
                 if trailing:
