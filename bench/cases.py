@@ -587,21 +587,38 @@ def _proc_rss_mb(pid: int) -> float:
     return math.nan
 
 
-def _thread_cpu(pid: int) -> dict[str, float]:
-    """Return CPU seconds per thread: Fast DDS's by name, 'control loop', other 'python'."""
+def _thread_name(comm: str) -> str:
+    """Group a thread by its name: Fast DDS's by name, 'control loop', other 'python'."""
+    return 'python' if comm.startswith('python') else 'control loop' \
+        if comm.startswith('vfd ') else comm.rstrip('0123456789.')
+
+
+def _thread_usage(pid: int) -> dict[str, tuple[float, int]]:
+    """Return CPU seconds and context switches (its wake-ups) per thread group of ``pid``.
+
+    A thread that blocks and is woken again switches out once per wake-up (voluntary);
+    one the scheduler takes the CPU from counts too (involuntary): together, how often
+    the thread started running again, each time with caches another thread has used.
+    """
     ticks = os.sysconf('SC_CLK_TCK')
-    result: dict[str, float] = {}
+    result: dict[str, tuple[float, int]] = {}
     for task in Path(f'/proc/{pid}/task').iterdir():
         try:
             head, tail = (task / 'stat').read_text().rsplit(')', 1)
+            switches = _context_switches(task / 'status')
         except OSError:
             continue
-        name = head.split('(', 1)[1]
-        name = 'python' if name.startswith('python') else 'control loop' \
-            if name.startswith('vfd ') else name.rstrip('0123456789.')
         fields = tail.split()
-        result[name] = result.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / ticks
+        name = _thread_name(head.split('(', 1)[1])
+        cpu, wakes = result.get(name, (0.0, 0))
+        result[name] = (cpu + (int(fields[11]) + int(fields[12])) / ticks, wakes + switches)
     return result
+
+
+def _context_switches(status: Path) -> int:
+    """Voluntary + involuntary context switches from a /proc .../status file."""
+    return sum(int(line.split()[1]) for line in status.read_text().splitlines()
+               if line.partition(':')[0].endswith('ctxt_switches'))
 
 
 class DriverProcess:
@@ -747,17 +764,23 @@ def _cpu_window(bus: DriverProcess, window: float,
                 profile_with_pyspy: bool = False) -> dict[str, Any]:
     """CPU %, per thread, RSS and transactions/s of the bus_node process over ``window``."""
     tx0 = bus.transaction_counts()
-    threads0 = _thread_cpu(bus.child.pid)
+    threads0 = _thread_usage(bus.child.pid)
     cpu0, start = _proc_cpu_seconds(bus.child.pid), time.monotonic()
     spy = _start_pyspy(bus.child.pid, window) if profile_with_pyspy else None
     bus.spin_for(window)
     cpu1, end = _proc_cpu_seconds(bus.child.pid), time.monotonic()
-    threads1 = _thread_cpu(bus.child.pid)
+    threads1 = _thread_usage(bus.child.pid)
+    elapsed = end - start
+    used = {}
+    for name, (cpu, wakes) in sorted(threads1.items()):
+        cpu0_thread, wakes0_thread = threads0.get(name, (0.0, 0))
+        used[name] = (cpu - cpu0_thread, wakes - wakes0_thread)
     result: dict[str, Any] = {
-        'cpu_percent': round(100.0 * (cpu1 - cpu0) / (end - start), 2),
-        'cpu_percent_by_thread': {
-            name: round(100.0 * (threads1[name] - threads0.get(name, 0.0)) / (end - start), 2)
-            for name in sorted(threads1) if threads1[name] - threads0.get(name, 0.0) > 0},
+        'cpu_percent': round(100.0 * (cpu1 - cpu0) / elapsed, 2),
+        'cpu_percent_by_thread': {name: round(100.0 * cpu / elapsed, 2)
+                                  for name, (cpu, _) in used.items() if cpu > 0},
+        'wakeups_per_s_by_thread': {name: round(wakes / elapsed)
+                                    for name, (_, wakes) in used.items() if wakes > 0},
         'transactions_per_s': round(bus.transaction_rate(tx0, bus.transaction_counts()), 1),
         'comm_errors': sum(s.comm_errors for s in bus.last.values()),
         'rss_mb': round(_proc_rss_mb(bus.child.pid), 1),
@@ -938,6 +961,8 @@ def io_floor(profile_name: str, units: int, window: float,
         try:
             tty.setraw(fd)
             period, cycle = 1.0 / control_rate, 0
+            own_status = Path(f'/proc/self/task/{threading.get_native_id()}/status')
+            wakes0 = _context_switches(own_status)
             cpu0, start = time.thread_time(), time.monotonic()
             while time.monotonic() < start + window:
                 for frame, expected in cycles[cycle % period_cycles]:
@@ -951,12 +976,14 @@ def io_floor(profile_name: str, units: int, window: float,
                 cycle += 1
                 time.sleep(max(0.0, start + cycle * period - time.monotonic()))
             cpu, elapsed = time.thread_time() - cpu0, time.monotonic() - start
+            wakes = _context_switches(own_status) - wakes0
         finally:
             os.close(fd)
     cpu_percent = 100.0 * cpu / elapsed
     return {'profile': profile_name, 'drives': units, 'executor': 'io_floor',
             'control_rate_hz': control_rate, 'cpu_percent': round(cpu_percent, 2),
             'cpu_percent_by_thread': {'control loop': round(cpu_percent, 2)},
+            'wakeups_per_s_by_thread': {'control loop': round(wakes / elapsed)},
             'transactions_per_s': round(done / elapsed, 1), 'rss_mb': None,
             'cpu_percent_per_drive': round(cpu_percent / units, 2),
             'approx_cycles_per_s': round(cycle / elapsed, 1),

@@ -13,6 +13,15 @@ def _fmt(value: Any, digits: int = 1) -> str:
     return str(value)
 
 
+def _wakeups(row: dict[str, Any]) -> str:
+    """Format the control thread's and the other Python threads' wake-ups per second."""
+    wakes = row.get('wakeups_per_s_by_thread')
+    if not wakes:
+        return '-'
+    return f"{wakes.get('control loop', 0)} / {wakes['python']}" if 'python' in wakes \
+        else str(wakes.get('control loop', 0))
+
+
 def _verdict(value: float | None, target: float | None, higher_is_better: bool) -> str:
     if value is None or target is None:
         return ''
@@ -139,7 +148,7 @@ def render_table(results: dict[str, Any]) -> str:
         if r.get('kind') == 'wake_cost':
             continue
         if 'error' in r:
-            rows.append([r['case'], 'error: ' + r['error']] + [''] * 8)
+            rows.append([r['case'], 'error: ' + r['error']] + [''] * 9)
             continue
         threads = r.get('cpu_percent_by_thread', {})
         design = EXECUTORS.get(r.get('executor', 'single'), '?') + \
@@ -150,7 +159,7 @@ def render_table(results: dict[str, Any]) -> str:
         rows.append([design, str(r['drives']),
                      _fmt(r['approx_cycles_per_s'], 1), _fmt(r['cpu_percent'], 1),
                      _fmt(r['cpu_percent_per_drive'], 1), _fmt(threads.get('control loop'), 1),
-                     _fmt(threads.get('python'), 1),
+                     _fmt(threads.get('python'), 1), _wakeups(r),
                      _fmt(1e4 * r['cpu_percent'] / r['transactions_per_s'], 0)
                      if r.get('transactions_per_s') else '-',
                      _fmt(r['rss_mb'], 0),
@@ -168,6 +177,7 @@ def render_table(results: dict[str, Any]) -> str:
                          ['executor', 'drives', 'cycles/s per drive', 'CPU % (one core)',
                           'CPU % per drive', 'of it control thread %',
                           'executor and other Python threads %',
+                          'wake-ups/s: control thread / Python threads',
                           'process CPU µs per Modbus transaction', 'RSS MB',
                           'target per drive'], rows)
                      + ('' if wake is None or 'error' in wake else
@@ -406,9 +416,10 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.4 % with four drives and 6.7 % for a drive_node in the full run
-  of 2026-11-27 02:47 (0.2 % steal; 3.6 and 6.7 % at 02:20, 0.05 %; 3.9 and 6.8 % at 00:36,
-  0.24 %; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26); half the previous design's.**
+  drive_node) — not met: 3.5 % with four drives and 6.5 % for a drive_node in the re-run of
+  section 5 at 2026-11-27 04:23 (0.12 % steal; 3.4 and 6.7 % in the full run of 02:47; 3.6
+  and 6.7 % at 02:20; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26); half the
+  previous design's.**
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
@@ -430,7 +441,9 @@ BOUNDS = """### Targets and what bounds them
     named tuple (a frozen dataclass sets its 39 fields one `object.__setattr__` at a time:
     6 against 1.7 µs): 8095 steps per drive-cycle (-8.5 %), and in three interleaved pairs
     3.73-4.13 % per drive against 3.81-4.09 % before, which the runs cannot tell apart (a
-    drive_node: 7.44-7.95 against 7.30-7.45 %, a busier hour).
+    drive_node: 7.44-7.95 against 7.30-7.45 %, a busier hour). The safety checks added after
+    the hostile-slave audit of 2026-11-27 (a lost run command, a refused command write, the
+    units that answered instead) cost 75 of them: 8170.
   - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
     splits the process. The control thread costs ~2.2-2.5 % of a core per drive with four
     drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
@@ -452,7 +465,12 @@ BOUNDS = """### Targets and what bounds them
     against Python's 5 ms, two interleaved runs each, differed by less than the runs' own
     spread; nor, below the runs' spread, is an idle executor's wake-up every 0.1 s (now
     every 1 s: 0.1-0.2 points less for a drive_node with status and commands at 1 Hz, three
-    interleaved pairs).
+    interleaved pairs). The wake-ups column (context switches per second, from /proc) says
+    what it is not: the floor's thread wakes as often as the driver's control thread (459
+    against 449 a second for one drive, 1716 against 1789 for four: each reply, each cycle)
+    and costs a third; what differs is the Python each wake-up runs, cold. The executor
+    thread wakes about three times per event (215 a second for 50 commands, 20 status and
+    one diagnostics message).
   - *Levers not taken.* Publishing a drive_node's status from its control thread right
     after the poll saves the status wake-ups: 0.7-1.0 points in three interleaved pairs
     (6.4-7.5 % to 5.4-6.6 %), not enough for 5 %, and it would put ROS publishing into the
