@@ -629,8 +629,9 @@ class DriveController:
         # The other way round: told to run, the drive does not (it reset, was stopped
         # at its keypad, an inhibit): report it rather than show "running" with OK
         # diagnostics. It is not restarted behind an operator's back: ~/enable writes
-        # the run command again.
-        if running or not self._run_written:
+        # the run command again. Only at a setpoint other than zero: some drives do not
+        # run at zero speed by design (Kinco EC with A0.19 = 0).
+        if running or not self._run_written or not self.drive.last_setpoint_raw:
             self._not_running_since, self._lost_run = None, ''
             return
         now = self._clock()
