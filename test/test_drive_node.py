@@ -171,6 +171,35 @@ def test_a_drive_that_loses_its_run_command_is_reported_and_not_restarted_behind
                   abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running again')
 
 
+def test_a_drive_that_reset_is_configured_again_and_runs_on_fresh_commands(make_harness,
+                                                                             caplog):
+    """A drive that stopped and lost its settings reset: it is configured again.
+
+    Told to run, it stops and has lost what was set at connect (a power cycle keeps
+    only its EEPROM). The node connects afresh (the stop first, the settings again)
+    and it runs on the planner's fresh commands, as a CANopen node that sent a
+    boot-up does: not blocked, and the comm-loss timeout in ~/status is again the
+    one the drive holds.
+    """
+    caplog.set_level('WARNING')
+    h = make_harness(node_parameters={'auto_enable': True, 'action_timeout': 0.5})
+    h.stream(1.0)
+    status = h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                           'running at 1 rad/s')
+    timeout = h.profile.parameter('C02.04')
+    written = h.sim.value('C02.04')
+    assert written == status.host_loss_timeout
+    with h.sim.lock:
+        h.sim.run_requested = False                      # power-up state
+    h.sim.write(timeout.address, [timeout.to_raw(2.0)])  # the factory value again
+    h.wait_status(lambda s: s.reconnects >= 1, 5.0, 'connected afresh')
+    assert any('the drive reset' in r.getMessage() and 'C02.04 reads 2s' in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]
+    h.wait_status(lambda s: s.state == 'running' and s.running and
+                  abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running again')
+    assert h.sim.value('C02.04') == written, 'the comm-loss timeout written again'
+
+
 def test_fault_is_published_with_text_and_reset_is_verified(make_harness):
     h = make_harness(node_parameters={'auto_enable': True})
     h.stream(1.0)

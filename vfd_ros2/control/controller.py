@@ -638,6 +638,16 @@ class DriveController:
         if self._not_running_since is None:
             self._not_running_since = now
         elif not self._lost_run and now - self._not_running_since > self.config.action_timeout:
+            # Settings lost as well: it reset. Connected afresh (stop first, settings
+            # written again), it runs on fresh commands, as a CANopen node that sent a
+            # boot-up does; with its settings intact it was stopped by other means.
+            settings_lost = getattr(self.drive, 'settings_lost', None)
+            lost = settings_lost() if settings_lost is not None else ''
+            if lost:
+                self.link.drop(f'the drive reset: it stopped running and {lost}')
+                self._reading = Reading()
+                self.drive.close()
+                return
             self._lost_run = (f'told to run, the drive has reported not running for '
                               f'{self.config.action_timeout:g} s (it reset, was stopped '
                               'locally, or is inhibited): call ~/enable to write the run '

@@ -64,6 +64,13 @@ class LinkSupervisor:
             self._connect_error = self.error
             log.warning('%s: connect failed: %s', self.name, self.error)
 
+    def drop(self, reason: str) -> None:
+        """Go offline now and connect afresh at once (the drive must be configured again)."""
+        log.warning('%s offline: %s', self.name, reason)
+        self.online = False
+        self.error = reason
+        self._next_attempt = self._clock()
+
     def cycle_ok(self) -> None:
         self._failed_cycles = 0
 

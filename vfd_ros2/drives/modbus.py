@@ -102,6 +102,7 @@ class ModbusDrive(DriveOnLink):
         self._words: dict[int, int] = {}
         self.asserted_command: str | None = None
         self.last_setpoint_raw = 0
+        self._configured: list[tuple[Parameter, int]] = []     # what configure() set
 
     @property
     def link_parameters(self) -> tuple[str, ...]:
@@ -236,15 +237,34 @@ class ModbusDrive(DriveOnLink):
         if apply_commissioning:
             wanted += [(item.code, item.value) for item in self.profile.commissioning]
         problems = []
+        self._configured = []
         for code, value in wanted:
             parameter = self.profile.parameter(code)
             try:
                 raw = parameter.to_raw(value)
                 if self.read_value(parameter).raw != raw:
                     self.write_raw(parameter, raw)
+                self._configured.append((parameter, raw))
             except (ParameterError, ProtocolException) as exc:
                 problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
         return problems
+
+    def settings_lost(self) -> str:
+        """Read back what ``configure`` set; say what differs now ('' if nothing does).
+
+        A drive that lost them reset (a power cycle keeps only what its EEPROM
+        holds); one that kept them was stopped by other means (its keypad, an
+        input). A value it now refuses to read is not evidence either way.
+        """
+        for parameter, raw in self._configured:
+            try:
+                now = self.read_value(parameter).raw
+            except ProtocolException:
+                continue
+            if now != raw:
+                return (f'{parameter.code} reads {parameter.from_raw(now):g}{parameter.unit}, '
+                        f'{parameter.from_raw(raw):g}{parameter.unit} was set at connect')
+        return ''
 
     # --- register access ------------------------------------------------------
 
