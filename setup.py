@@ -1,9 +1,10 @@
 """Setuptools metadata for the hand-written vfd_ros2 Python package.
 
-The package is built with ament_cmake (see CMakeLists.txt) because it generates
-ROS interfaces; ament_python_install_package() installs this Python package and
-the console_scripts of setup.cfg next to the generated vfd_ros2.msg/.srv.
-This file keeps the same metadata for tools that expect a setup.py.
+The package is built with ament_cmake because it generates ROS interfaces, and
+CMakeLists.txt installs it: the hand-written modules go next to the generated
+vfd_ros2.msg/.srv (install(DIRECTORY)), and one launcher per console_scripts
+entry of setup.cfg goes to lib/vfd_ros2 (the only part of setup.cfg the build
+reads). This file keeps the same metadata for tools that expect a setup.py.
 """
 from setuptools import find_packages, setup
 

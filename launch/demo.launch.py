@@ -6,14 +6,17 @@ The demo's velocity profile runs too (run_demo:=true).
         [managed:=true [autostart:=false]]
 
 managed:=true starts the drive nodes as lifecycle nodes (configured and activated at
-start unless autostart:=false; then a lifecycle manager or `ros2 lifecycle set` does it).
+start unless autostart:=false; then a lifecycle manager or `ros2 lifecycle set` does it,
+and run_demo:=false: the profile gives up after 20 s of unconfigured drives).
+The demo's processes keep DDS on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
+set here as scripts/demo does: the demo refuses to run without it).
 Ctrl-C: each simulator keeps its line open until its driver has written the stop.
 The node list comes from vfd_ros2.apps.bringup.sim_wheels (unit-tested); this file only
 turns it into launch actions.
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -30,6 +33,7 @@ def _nodes(context):
 
 def generate_launch_description():
     return LaunchDescription([
+        SetEnvironmentVariable('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'),
         DeclareLaunchArgument('directory', default_value=DEFAULT_DEMO_DIR,
                               description='where the emulated serial ports are created'),
         DeclareLaunchArgument('run_demo', default_value='true',

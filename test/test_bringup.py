@@ -87,7 +87,8 @@ def _fake_launch_modules(monkeypatch):
 
     modules = {
         'launch': {'LaunchDescription': lambda actions: list(actions)},
-        'launch.actions': {'DeclareLaunchArgument': Action, 'OpaqueFunction': Action},
+        'launch.actions': {'DeclareLaunchArgument': Action, 'OpaqueFunction': Action,
+                           'SetEnvironmentVariable': Action},
         'launch.conditions': {'IfCondition': Action},
         'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
         'launch_ros': {},
@@ -122,6 +123,9 @@ def test_demo_launch_file_builds_the_bringup_nodes(monkeypatch):
     assert all(n.kwargs['arguments'] == [] for n in nodes)
     demo = [a for a in actions if isinstance(a, Action) and a.kwargs.get('executable') == 'demo']
     assert demo and demo[0].kwargs['arguments'] == ['--attach']
+    # The demo refuses to run unless DDS stays on this machine: the launch file says so
+    # first (on an apt machine nothing else sets it), before any process starts.
+    assert actions[0].args == ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     # Piped launch output carries no ANSI colour codes: no node pretends to be on a tty.
     assert all(a.kwargs.get('emulate_tty') is False for a in [*nodes, *demo])
     defaults = {a.args[0]: a.kwargs.get('default_value') for a in actions
