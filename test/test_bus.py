@@ -361,6 +361,44 @@ def test_a_canopen_drive_connecting_never_holds_up_the_others():
         with_bus.stop()
 
 
+def test_a_canopen_bus_stops_its_running_drives_before_it_waits_for_a_connect():
+    """A CANopen bus shut down during a connect stops its running drives at once.
+
+    A silent node's connect waits out a 2 s SDO timeout; the connect used to be
+    waited for first, and the running drives kept their last command meanwhile.
+    """
+    from vfd_ros2.protocol.cia402 import State
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    profile = load_profile('cia402_velocity')
+    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
+    sims = {node_id: SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)}
+    with_bus = SimulatedCanBus(list(sims.values()), channel).start()
+    config = parse_bus_config({
+        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
+                'transport.channel': channel, 'transport.timeout': 2.0, 'control_rate': 100.0},
+        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
+                             'gear_ratio': 10.0, 'auto_enable': True,
+                             'reconnect_period': 0.05} for n in (1, 2)}})
+    bus = Bus(config)
+    bus.start()
+    try:
+        first, second = bus.controllers['n1'], bus.controllers['n2']
+        wait_for(lambda: first.command_velocity(1.0) and second.command_velocity(1.0) and
+                 first.state.running and second.state.running, 10.0, 'both running')
+        sims[2].silent = True
+        wait_for(lambda: first.command_velocity(1.0) and not second.state.online and
+                 bus._beside is not None, 5.0, 'node 2 connecting')      # noqa: SLF001
+        started = time.monotonic()
+        stopping = threading.Thread(target=bus.shutdown)
+        stopping.start()
+        wait_for(lambda: sims[1].state is not State.OPERATION_ENABLED, 3.0, 'node 1 stopped')
+        assert time.monotonic() - started < 0.5
+        stopping.join(5.0)
+    finally:
+        bus.shutdown()
+        with_bus.stop()
+
+
 def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_path,
                                                                 monkeypatch):
     """bus_node with three CANopen drives: one python-can handle, per-drive counters."""

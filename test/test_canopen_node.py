@@ -483,3 +483,18 @@ def test_repeat_summary_logs_each_kind_once_and_sums_the_rest_once_per_period():
     assert lines.due(40.0) == 0                 # nothing new: no line
     lines.forget()                              # the drive's error reset
     assert lines.first('a', 41.0) and lines.first('c', 41.0)
+
+
+def test_a_kincos_can_settings_are_not_written_over_its_own_can_link(make_can_harness):
+    """B0.35/B0.36 (CAN bit rate, node id): written over SDO, the drive leaves the bus."""
+    h = make_can_harness(profile='kinco_ec')
+    wheel = h.wheels[1]
+    for code, value in (('B0.36', 5.0), ('B0.35', 1.0)):
+        reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                           SetDriveParameter.Request(name=code, value=value))
+        assert not reply.success and 'how this link reaches the drive' in reply.message, \
+            (code, reply.message)
+        got = wheel.call(GetDriveParameter, 'get_drive_parameter',
+                         GetDriveParameter.Request(name=code))
+        assert not got.writable, code
+    assert wheel.wait_status(lambda s: s.online, 2.0, 'still online').reconnects == 0

@@ -227,6 +227,8 @@ class FakeWheel:
         self.commands: list[float] = []
         self.measured = 0.0
         self.online = True
+        self.fault = False
+        self.state = ''             # DriveStatus.state; '' says nothing either way
         self.publishing = True
         tester.create_subscription(Float64, f'{prefix}/drive/velocity_command',
                                    lambda msg: self.commands.append(msg.data), 50)
@@ -238,7 +240,8 @@ class FakeWheel:
 
     def publish_status(self, stamp: Any) -> None:
         if self.publishing:
-            status = DriveStatus(online=self.online, measured_velocity=self.measured)
+            status = DriveStatus(online=self.online, measured_velocity=self.measured,
+                                 fault=self.fault, state=self.state)
             status.header.stamp = stamp
             self.status_pub.publish(status)
             self._statuses += 1
@@ -630,3 +633,30 @@ def test_odometry_advance_from_wheel_increments():
     quarter = math.pi / 2 * TRACK / 2 / R           # each wheel's angle for a quarter turn
     odom.advance(-quarter, quarter, 0.0, 0.0)
     assert odom.yaw_rad == pytest.approx(math.pi / 2) and odom.x_m == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize('trouble', ['offline', 'fault', 'stopped', 'silent'])
+def test_a_wheel_that_does_not_follow_stops_the_other_too(make_rig, trouble):
+    """One wheel that does not follow stops the other too, until both follow again.
+
+    Offline, faulted, stopped or silent: the other wheel alone would turn the robot
+    about it at the commanded speed.
+    """
+    rig = make_rig()
+    rig.twist = (0.5, 0.4)
+    rig.wait_commands(4.0, 6.0, what='arc')
+    if trouble == 'offline':
+        rig.right.online = False
+    elif trouble == 'fault':
+        rig.right.fault = True
+    elif trouble == 'stopped':
+        rig.right.state = 'stopped'
+    else:
+        rig.right.publishing = False
+    rig.wait_commands(0.0, 0.0, what='both wheels stopped')
+    count = len(rig.left.commands)
+    wait_for(lambda: len(rig.left.commands) > count + 10, 2.0, 'more commands')
+    assert set(rig.left.commands[count:]) == {0.0}
+    rig.right.online, rig.right.fault, rig.right.state = True, False, 'running'
+    rig.right.publishing = True
+    rig.wait_commands(4.0, 6.0, what='the arc again once both follow')

@@ -122,13 +122,14 @@ def test_nan_and_inf_commands_are_rejected_and_do_not_feed_watchdog(make_harness
     assert h.sim.run_requested is False
 
 
-def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harness):
+def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harness, caplog):
     """A drive that refuses its setpoint write still gets the watchdog's stop.
 
     The refusal (an exception reply to every write) is reported; the stop was
     lost behind the refused zero setpoint before, and the motor ran on.
     """
-    h = make_harness(node_parameters={'auto_enable': True})
+    caplog.set_level('WARNING')
+    h = make_harness(node_parameters={'auto_enable': True, 'action_timeout': 0.5})
     h.stream(1.0)
     h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
                   'running at 1 rad/s')
@@ -141,6 +142,9 @@ def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harne
     wait_for(lambda: not h.sim.run_requested, 2.0, 'the stop written despite the refusal')
     status = h.wait_status(lambda s: not s.running, 5.0, 'the drive stopped')
     assert any('command write refused' in u for u in status.unavailable), status.unavailable
+    time.sleep(1.0)         # > action_timeout: the stop went out, so no "lost run" alarm
+    assert h.wait_status(lambda s: True, 1.0).state == 'watchdog'
+    assert not [r for r in caplog.records if 'told to run' in r.getMessage()]
 
 
 def test_a_drive_that_loses_its_run_command_is_reported_and_not_restarted_behind_it(
@@ -198,6 +202,23 @@ def test_a_drive_that_reset_is_configured_again_and_runs_on_fresh_commands(make_
     h.wait_status(lambda s: s.state == 'running' and s.running and
                   abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running again')
     assert h.sim.value('C02.04') == written, 'the comm-loss timeout written again'
+
+
+def test_enable_on_a_running_drive_writes_no_run_edge(make_harness):
+    """A second ~/enable on a running AM leaves its command word alone.
+
+    The run edge (P07.32 = 0, then 1) is for a drive that lost its run command;
+    on a running one its 0 would pass through the manual's stop.
+    """
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'running at 1 rad/s')
+    since = time.monotonic()
+    assert h.trigger('enable').success
+    h.wait_cycles(5)
+    frames = h.frames_after(since)
+    assert write_frame(0xE720, 0) not in frames and write_frame(0xE720, 1) not in frames
 
 
 def test_fault_is_published_with_text_and_reset_is_verified(make_harness):

@@ -608,3 +608,16 @@ def test_values_come_on_the_resolution_without_float_noise(name):
             if parameter.maximum is not None and parameter.minimum is not None and \
                     parameter.minimum <= value <= parameter.maximum and not parameter.options:
                 assert parameter.to_raw(value) == raw, parameter.code
+
+
+@pytest.mark.parametrize(('name', 'lasting', 'passing'), [
+    ('boneng_am', {1, 2, 3, 4, 5, 6}, {10, 11}),        # its 05/06: read only, only stopped
+    ('boneng_mh', {4, 5, 6, 8, 9}, {10, 11}),
+    ('imo_hd2', {4, 5, 6, 7, 8, 9}, {10, 11}),          # 09: system locked (password)
+    ('kinco_ec', {1, 2, 3, 4}, {5, 6, 10, 11}),         # the manual lists the standard 1-4
+])
+def test_an_exception_code_passes_only_where_the_standard_says_so_and_the_manual_agrees(
+        name, lasting, passing):
+    """Busy and a gateway's codes pass (a failed exchange); a manual's own meaning lasts."""
+    modbus = shipped_profile(name).modbus
+    assert {c for c in lasting | passing if modbus.lasting_refusal(c)} == lasting

@@ -197,7 +197,9 @@ class ServiceActions:
             return ActionResult(False, f'not enabled: {reading.unsafe}')
         intent = self.intent
         intent.enabled, intent.stopped, intent.idle_action = True, False, 'stop'
-        self.reassert_run = True    # a drive that lost its run command gets it again
+        # A drive that lost its run command (it does not report running) gets it again;
+        # one that runs is left alone (the run edge would pass through a stop).
+        self.reassert_run = not self._flag('running', False)
         ok = yield from self._wait_for(lambda: self._flag('ready', True) or
                                        self._flag('running', False), self.action_timeout)
         if not ok:

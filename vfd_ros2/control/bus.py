@@ -202,6 +202,7 @@ class Bus:
         controllers = self._serving()
         if self.transport.connects_beside_the_cycle:
             self._connect_beside(controllers)
+            controllers = self._serving()       # not the one whose connect just started
             candidates, budget = {}, 0.0
         else:
             candidates, budget = self._connect_candidates(controllers)
@@ -362,12 +363,18 @@ class Bus:
         return min(moments, default=None)
 
     def finish(self) -> None:
-        beside = self._beside
-        if beside is not None:      # a connect ends at its next SDO timeout at the latest
-            beside[1].join(CONNECT_JOIN_TIMEOUT)
-            self._beside = None
-        for controller in self.controllers.values():
+        # The drives this thread serves get their stop first: a connect beside the
+        # cycle (dozens of SDO exchanges) must not hold it back. Then that connect is
+        # waited for (it wrote its drive's stop first), and its drive finished too.
+        # One still running after the wait stays noted, so a restarted loop does not
+        # start a second connect of the same drive beside it.
+        for controller in self._serving():
             controller.finish()
+        beside = self._beside
+        if beside is not None:
+            beside[1].join(CONNECT_JOIN_TIMEOUT)
+            beside[0].finish()
+            self._serving()             # forgets it once its thread has ended
         for transport in self.transports:
             transport.close()
 

@@ -512,7 +512,12 @@ class DriveController:
         services.reassert_idle = services.reassert_run = False
         try:
             self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
-        except ProtocolException as exc:
+        except (ProtocolException, TransportError) as exc:
+            if not run and getattr(self.drive, 'asserted_command', None) == \
+                    self.intent.idle_action:
+                self._run_written = False    # the stop went out, the zero setpoint did not
+            if isinstance(exc, TransportError):
+                raise
             # The drive answered but refused: not a link failure, and not to be lost in
             # link.error while online. Shown in ~/status and /diagnostics (WARN) until
             # a command write succeeds; logged once per reason.

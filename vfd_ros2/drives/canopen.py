@@ -202,6 +202,11 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
 
     # --- timing (an RPDO per cycle; SDO only at connect and for services) ---------------
 
+    @property
+    def link_parameters(self) -> tuple[str, ...]:
+        """The profile's link settings (a Kinco's CAN bit rate and node id among them)."""
+        return self.profile.identify.link_parameters if self.profile.identify else ()
+
     def cycle_seconds(self) -> float:
         return 0.0
 

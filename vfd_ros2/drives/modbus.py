@@ -278,8 +278,9 @@ class ModbusDrive(DriveOnLink):
 
         A timeout is not retried: it already cost a full timeout, and the next
         cycle asks again anyway. An exception reply is the drive's answer
-        (ProtocolException) only where its manual gives the code a lasting
-        meaning (``ModbusSpec.lasting_refusal``); any other is a failed exchange.
+        (ProtocolException), except the codes the Modbus standard gives a passing
+        condition and the drive's manual no other meaning (busy, a gateway's:
+        ``ModbusSpec.lasting_refusal``): those are failed exchanges.
         """
         try:
             try:

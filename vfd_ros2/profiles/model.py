@@ -171,9 +171,10 @@ STANDARD_EXCEPTION_FOR: Mapping[str, int] = MappingProxyType({
     'illegal_function': 1, 'illegal_address': 2, 'illegal_value': 3,
     'too_many_registers': 3, 'read_only': 2, 'stopped_only': 4,
 })
-#: the situations in which a drive's refusal lasts: the same request is refused again
-LASTING = ('illegal_function', 'illegal_address', 'illegal_value', 'too_many_registers',
-           'read_only', 'stopped_only')
+#: the exception codes the Modbus standard gives a condition that passes (V1.1b3, 7):
+#: 05 acknowledge (still working), 06 server busy, 0A gateway path unavailable, 0B
+#: gateway target device failed to respond
+PASSING = frozenset({5, 6, 10, 11})
 
 
 @dataclass(frozen=True)
@@ -204,12 +205,12 @@ class ModbusSpec:
     def lasting_refusal(self, code: int) -> bool:
         """Return whether exception ``code`` is this drive's answer to the request itself.
 
-        The codes it answers to an illegal function, address, value or count, a
-        read-only parameter or one writable only while stopped are: asked again, it
-        refuses again. Any other code (device failure, busy, a gateway whose drive
-        does not answer, one the manual does not list) may pass.
+        Asked again, it refuses again: every code but those the standard gives a
+        passing condition (busy, acknowledge, a gateway whose drive does not
+        answer), unless this drive's manual gives the code a meaning of its own
+        (the BONENG AM's 05 is "read only", its 06 "modify only while stopped").
         """
-        return any(code == self.exception_code(situation) for situation in LASTING)
+        return code not in PASSING or code in self.exception_codes
 
 
 class DirectionMode(str, enum.Enum):

@@ -27,6 +27,11 @@ clock) is rejected and counted: it never starts the wheels, so a command queued
 behind a network stall cannot move the robot late. A zero stamp is taken as
 "now", as diff_drive_controller does.
 
+One wheel that does not follow its commands (its status stale or missing, its drive
+offline, faulted, disabled, stopped, blocked or tripped) would turn the robot about it
+at the commanded speed: both wheels are then commanded to zero, within the
+acceleration limits, until both follow again (logged once per cause).
+
 Odometry never uses the commands. With position_feedback (the default, as
 diff_drive_controller) the pose follows the wheels' JointState positions (the
 drive's own counter where the profile has one, else the speed the drive node
@@ -110,20 +115,43 @@ LIMITS = ('max_linear_velocity', 'max_angular_velocity', 'max_linear_acceleratio
           'max_angular_acceleration', 'max_wheel_velocity')
 
 
+#: DriveStatus.state of a drive that does not follow its velocity commands
+NOT_FOLLOWING = frozenset({'offline', 'fault', 'disabled', 'stopped', 'blocked', 'watchdog'})
+
+
 class WheelInput:
-    """The latest measured speed of one wheel, and when it arrived."""
+    """The latest measured speed and state of one wheel, and when they arrived."""
 
     def __init__(self, name: str, invert: bool) -> None:
         self.name = name
         self.sign = -1.0 if invert else 1.0
         self.velocity_rad_s = math.nan
         self.online = False
+        self.fault = False
+        self.state = ''
         self.received: Time | None = None
 
     def update(self, msg: DriveStatus, now: Time) -> None:
         self.velocity_rad_s = self.sign * float(msg.measured_velocity)
         self.online = bool(msg.online)
+        self.fault = bool(msg.fault)
+        self.state = str(msg.state)
         self.received = now
+
+    def not_following(self, now: Time, timeout_s: float) -> str:
+        """Return why this wheel may not follow its commands ('' if nothing says so)."""
+        if self.received is None:
+            return f'no status from the {self.name} wheel yet'
+        age = (now - self.received).nanoseconds * 1e-9
+        if age > timeout_s:
+            return f'{self.name} wheel status is {age:.2f} s old'
+        if not self.online:
+            return f'{self.name} wheel drive is offline'
+        if self.fault:
+            return f'{self.name} wheel drive has a fault'
+        if self.state in NOT_FOLLOWING:
+            return f'{self.name} wheel drive is {self.state}'
+        return ''
 
     def problem(self, now: Time, timeout_s: float) -> str:
         """Return why this wheel's speed cannot be used ('' if it can)."""
@@ -200,6 +228,7 @@ class DiffDriveNode(Node):
         self.target: tuple[float, float] = (0.0, 0.0)
         self.last_command: Time | None = None
         self.timed_out = True
+        self.halted = ''            # why both wheels are held at zero ('' while they follow)
         self._last_tick: Time | None = None
 
         self.left_pub = self.create_publisher(Float64, values['left_wheel_command_topic'], 10)
@@ -337,7 +366,15 @@ class DiffDriveNode(Node):
             self.get_logger().warning(
                 f'no valid cmd_vel for {self.cmd_vel_timeout_s} s: stopping the wheels')
         self.timed_out = not fresh
-        target = self.target if fresh else (0.0, 0.0)
+        # One wheel that does not follow (offline, faulted, stopped, ...) would turn the
+        # robot about it at the commanded speed: both wheels are brought to zero
+        # (within the acceleration limits) until both follow again.
+        halt = self.left.not_following(now, self.wheel_status_timeout_s) or \
+            self.right.not_following(now, self.wheel_status_timeout_s)
+        if halt and halt != self.halted and fresh and any(self.target):
+            self.get_logger().warning(f'stopping both wheels: {halt}')
+        self.halted = halt
+        target = self.target if fresh and not halt else (0.0, 0.0)
         linear, angular = self.limiter.step(target[0], target[1], dt)
         left, right = self.kinematics.wheel_speeds(linear, angular)
         self.left_pub.publish(Float64(data=self.left.sign * left))

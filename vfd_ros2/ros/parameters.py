@@ -91,7 +91,10 @@ class LiveParameters:
             text = current.description
             self.node.set_descriptor(name, ParameterDescriptor(
                 description=(text + ' ' if text else '') + '[set at start-up only]',
-                type=current.type, read_only=True))
+                type=current.type, read_only=True,
+                additional_constraints=current.additional_constraints,
+                integer_range=current.integer_range,
+                floating_point_range=current.floating_point_range))
 
     def __call__(self, parameters: list[Parameter]) -> SetParametersResult:
         changes: dict[str, Any] = {}
