@@ -542,6 +542,10 @@ def test_stale_stamped_cmd_vel_is_rejected_and_the_wheels_stay_stopped(make_rig)
     assert set(rig.right.commands) == {0.0}
     rig.stamp_age = 0.1                     # fresh enough: the same stream moves the wheels
     rig.wait_commands(5.0, 5.0, what='fresh stamped commands')
+    stale = rig.node.stale_commands
+    rig.stamp_age = -100.0                  # a sender whose clock runs 100 s ahead
+    rig.wait_commands(0.0, 0.0, what='stopped: commands from the future are refused')
+    assert rig.node.stale_commands > stale
 
 
 def test_stale_stamped_cmd_vel_keeps_a_simulated_motor_stopped(ros_context, tmp_path):

@@ -24,8 +24,9 @@ this node dies or its link breaks.
 
 A stamped command older than cmd_vel_timeout (header.stamp against this node's
 clock) is rejected and counted: it never starts the wheels, so a command queued
-behind a network stall cannot move the robot late. A zero stamp is taken as
-"now", as diff_drive_controller does.
+behind a network stall cannot move the robot late. So is one stamped more than
+cmd_vel_timeout ahead (its sender's clock is off: its age would never tell). A
+zero stamp is taken as "now", as diff_drive_controller does.
 
 One wheel that does not follow its commands (its status stale or missing, its drive
 offline, faulted, disabled, stopped, blocked or tripped) would turn the robot about it
@@ -312,10 +313,14 @@ class DiffDriveNode(Node):
                                           throttle_duration_sec=5.0)
             else:
                 age = (now - stamp).nanoseconds * 1e-9
-                if age > self.cmd_vel_timeout_s:
+                if abs(age) > self.cmd_vel_timeout_s:
+                    # Too old, or from the future: a clock off by more than the timeout
+                    # would let a queued command through (its age never reaches it).
                     self.stale_commands += 1
+                    when = f'{age:.3f} s ago' if age > 0 else \
+                        f'{-age:.3f} s in the future (clocks not in sync?)'
                     self.get_logger().warning(
-                        f'rejected cmd_vel stamped {age:.3f} s ago (cmd_vel_timeout '
+                        f'rejected cmd_vel stamped {when} (cmd_vel_timeout '
                         f'{self.cmd_vel_timeout_s} s); {self.stale_commands} stale so far',
                         throttle_duration_sec=1.0)
                     return
