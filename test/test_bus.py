@@ -399,6 +399,40 @@ def test_a_canopen_bus_stops_its_running_drives_before_it_waits_for_a_connect():
         with_bus.stop()
 
 
+def test_a_canopen_bus_may_run_faster_than_its_written_protection_was_sized_for():
+    """A faster bus rate that the protection written at connect still covers is accepted.
+
+    The RPDO deadline written at connect was raised for 50 Hz (0.33 s); at 100 Hz
+    a shorter one would do, and the longer one still fits (it was refused). A rate
+    that needs a longer deadline than written is refused, changing nothing.
+    """
+    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
+    profile = load_profile('cia402_velocity')
+    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
+    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)]
+    with_bus = SimulatedCanBus(sims, channel).start()
+    config = parse_bus_config({
+        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
+                'transport.channel': channel, 'control_rate': 50.0},
+        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
+                             'gear_ratio': 10.0} for n in (1, 2)}})
+    bus = Bus(config)
+    bus.start()
+    try:
+        wait_for(lambda: all(c.state.online for c in bus.controllers.values()), 10.0,
+                 'both online')
+        written = bus.controllers['n1'].protection.timeout
+        bus.set_rate(100.0)
+        assert bus.period == pytest.approx(0.01)
+        with pytest.raises(ParameterError, match='written at connect'):
+            bus.set_rate(2.0)
+        assert bus.period == pytest.approx(0.01)
+        assert bus.controllers['n1'].protection.timeout == written
+    finally:
+        bus.shutdown()
+        with_bus.stop()
+
+
 def test_canopen_bus_node_opens_one_can_handle_for_every_drive(ros_context, tmp_path,
                                                                 monkeypatch):
     """bus_node with three CANopen drives: one python-can handle, per-drive counters."""

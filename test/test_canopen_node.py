@@ -143,21 +143,42 @@ def test_two_drives_one_bus_dead_node_does_not_stall_the_other(make_can_harness,
         [r.getMessage() for r in caplog.records if r.name.startswith('canopen')]
 
 
-def test_drive_that_cannot_be_enabled_is_reported(make_can_harness):
+@pytest.mark.parametrize('commands', [True, False])
+def test_drive_that_cannot_be_enabled_is_refused_and_not_started_later(make_can_harness,
+                                                                        commands):
+    """An enable refused by a drive held in SWITCH_ON_DISABLED leaves it not enabled.
+
+    Safe torque off, say: ~/enable fails, with or without fresh commands, and the
+    drive does not start by itself when the hold is released (it did: the node
+    stayed enabled, and without commands the enable even reported success).
+    """
     h = make_can_harness(node_parameters={'action_timeout': 1.0})
     wheel, sim = h.wheels[1], h.sims[1]
     sim.enable_blocked = True                               # e.g. safe torque off active
-    wheel.stream(1.0)
+    if commands:
+        wheel.stream(1.0)
     reply = wheel.trigger('enable')
-    assert not reply.success and 'running' in reply.message, reply.message
-    status = wheel.status
+    assert not reply.success and 'not enabled' in reply.message, reply.message
+    status = wheel.wait_status(lambda s: not s.enabled, 1.0, 'not enabled')
     assert status.online and not status.running
     words = dict(zip(status.status_word_names, status.status_words_raw))
     assert words['cia402_state'] == State.SWITCH_ON_DISABLED
-    assert sim.speed_rpm == 0.0
-    # The status says why the wheel does not move.
+    wheel.stream(1.0)
+    sim.enable_blocked = False                              # the hold is released
+    time.sleep(1.0)
+    assert sim.state is not State.OPERATION_ENABLED and sim.speed_rpm == 0.0
+    assert wheel.trigger('enable').success
+    wheel.wait_status(lambda s: s.running, 5.0, 'running after a new ~/enable')
+
+
+def test_an_enabled_drive_held_in_switch_on_disabled_is_reported_blocked(make_can_harness):
+    h = make_can_harness(node_parameters={'action_timeout': 1.0, 'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    sim.enable_blocked = True
+    wheel.stream(1.0)
     status = wheel.wait_status(lambda s: s.state == 'blocked', 3.0, 'blocked state')
     assert 'SWITCH_ON_DISABLED' in status.stop_reason or 'stays in' in status.stop_reason
+    assert sim.speed_rpm == 0.0
 
 
 @pytest.mark.parametrize('object_set', ['manufacturer', 'ds402'])
@@ -498,3 +519,20 @@ def test_a_kincos_can_settings_are_not_written_over_its_own_can_link(make_can_ha
                          GetDriveParameter.Request(name=code))
         assert not got.writable, code
     assert wheel.wait_status(lambda s: s.online, 2.0, 'still online').reconnects == 0
+
+
+def test_the_heartbeat_and_pdo_objects_written_at_connect_are_not_parameters(make_can_harness):
+    """The CANopen objects the driver writes at connect are refused as parameters.
+
+    0x1017 through ~/set_drive_parameter took a running drive offline (its heartbeat
+    stopped) and was reverted at the reconnect; now refused, reported not writable.
+    """
+    h = make_can_harness()
+    wheel = h.wheels[1]
+    reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name='heartbeat_time', value=0.0))
+    assert not reply.success and 'writes at connect' in reply.message, reply.message
+    got = wheel.call(GetDriveParameter, 'get_drive_parameter',
+                     GetDriveParameter.Request(name='0x1017'))
+    assert got.success and not got.writable
+    assert wheel.wait_status(lambda s: s.online, 2.0, 'online').reconnects == 0

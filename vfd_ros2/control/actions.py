@@ -210,7 +210,10 @@ class ServiceActions:
                                 'velocity commands arrive')
         ok = yield from self._wait_for(lambda: self._flag('running', True), self.action_timeout)
         if not ok:
-            return ActionResult(False, 'enabled, but the drive does not report running')
+            # A refused enable leaves the node not enabled: the drive must not start by
+            # itself later, when whatever held it (a safe torque off) is released.
+            intent.enabled = False
+            return ActionResult(False, 'the drive does not report running: not enabled')
         return ActionResult(True, 'enabled and running')
 
     def _stopping(self, idle_action: str, what: str) -> Action:

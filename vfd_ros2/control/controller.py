@@ -309,14 +309,16 @@ class DriveController:
 
         ``interval`` is the new worst-case addressing interval (default: this
         drive alone at ``period``). The protection was sized and written at
-        connect; a period that would need another one is refused (ParameterError)
+        connect; a period that would need a longer one is refused (ParameterError)
         rather than left to trip the drive.
         """
         if interval is None:
             interval = max(period, self.drive.cycle_seconds()) + self.drive.action_seconds()
         plan = self.drive.host_loss_plan(self.config.drive_comm_timeout, interval)
+        # A faster cycle may need a shorter timeout: the longer one written still fits
+        # (the drive is addressed more often than it waits). Only a longer need trips it.
         if plan.active != self.protection.active or \
-                abs(plan.timeout - self.protection.timeout) > 1e-9:
+                plan.timeout > self.protection.timeout + 1e-9:
             raise ParameterError(
                 f'a cycle of {period:g} s needs the drive-side protection '
                 f'{plan.describe()} instead of {self.protection.describe()} written at '

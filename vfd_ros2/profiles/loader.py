@@ -517,6 +517,13 @@ def _control_owned(profile: Profile) -> dict[str, str]:
         owned[profile.comm_timeout.parameter] = (
             'the comm-loss timeout is written at connect from the drive_comm_timeout '
             'parameter, sized for the bus')
+    if profile.canopen is not None:
+        for parameter in profile.parameters.values():
+            index = parameter.index
+            if index in (0x1016, 0x1017) or (index is not None and 0x1400 <= index <= 0x1BFF):
+                owned.setdefault(parameter.code, (
+                    'a CANopen communication object the driver writes at connect (heartbeats, '
+                    'PDOs): set transport.heartbeat_ms or drive_comm_timeout instead'))
     object_sets = list(profile.canopen.object_sets.values()) if profile.canopen else []
     if profile.ethercat is not None:
         object_sets.append(profile.ethercat.objects)
