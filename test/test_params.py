@@ -253,6 +253,95 @@ def test_a_drive_that_refuses_a_write_midway_halts_and_is_left_stopped(make_line
     assert not line.sim.run_requested and not line.sim.output_active
 
 
+def test_a_halt_at_the_first_write_still_sets_the_ram_switch_back(make_line, tmp_path):
+    """A restore halted at its first write still sets the RAM/EEPROM switch back.
+
+    The AM's RAM write flips C02.07 before the write the drive refuses: nothing is
+    written, and the switch stayed on RAM-only (later changes lost at power-off).
+    """
+    profile = shipped_profile('boneng_am')
+    line = make_line('boneng_am')
+    backup_file = tmp_path / 'am.yaml'
+    assert params(['dump', *line.link, '--profile', 'boneng_am', '-o', backup_file])[0] == DONE
+    refused = 'B04.02'
+    line.set(refused, other_value(profile.parameter(refused), line.sim.value(refused)))
+    line.sim.refuse_writes([refused])
+    code, out, _ = params(['restore', backup_file, *line.link, '--write', 'ram'])
+    assert code == DIFFERENT and f'HALTED at {refused}' in out, out
+    assert line.sim.value('C02.07') == 0, out
+
+
+def test_a_file_with_a_value_no_write_can_take_is_refused_whole(make_line, tmp_path):
+    """A file with a value no write can take is refused whole, before any write.
+
+    Out of range, off the resolution: the others were written and the restore
+    ended 0.
+    """
+    line = make_line('boneng_am')
+    backup_file = tmp_path / 'am.yaml'
+    assert params(['dump', *line.link, '--profile', 'boneng_am', '-o', backup_file])[0] == DONE
+    document = yaml.safe_load(backup_file.read_text())
+    for item in document['parameters']:
+        if item['code'] == 'B04.02':
+            item['value'], item['raw'] = 12.5, 125          # a good edit
+        if item['code'] == 'B04.03':
+            item['value'], item['raw'] = 99999.0, 999990    # above the maximum
+    backup_file.write_text(yaml.safe_dump(document))
+    before = line.sim.value('B04.02')
+    for argv in (['restore', backup_file, *line.link],
+                 ['restore', backup_file, *line.link, '--write', 'ram']):
+        code, out, err = params(argv)
+        assert code == FAILED and 'not valid B04.03' in out and 'fix the file' in err, \
+            (out, err)
+    assert line.writes() == [] and line.sim.value('B04.02') == before
+
+
+@pytest.mark.parametrize(('edit', 'message'), [
+    (lambda d: d['parameters'][0].update(raw='abc'), 'raw'),
+    (lambda d: d['parameters'][0].update(value=True), 'not a number'),
+    (lambda d: d['parameters'][0].update(value='12.5'), 'not a number'),
+    (lambda d: d['parameters'][0].update(value=1e308), 'finite number a drive can hold'),
+    (lambda d: d.update(identity=['A02.00']), 'identity and unreadable must be mappings'),
+    (lambda d: d['identity'].update({'A02.00': 'v1.02'}), 'not a number'),
+    (lambda d: d.update(parameters=5), 'parameters must be a list'),
+    (lambda d: d['parameters'].append(dict(d['parameters'][0])), 'keep one'),
+])
+def test_a_malformed_backup_file_is_a_clear_error_not_a_traceback(make_line, tmp_path, edit,
+                                                                  message):
+    line = make_line('boneng_am')
+    backup_file = tmp_path / 'am.yaml'
+    assert params(['dump', *line.link, '--profile', 'boneng_am', '-o', backup_file])[0] == DONE
+    document = yaml.safe_load(backup_file.read_text())
+    edit(document)
+    backup_file.write_text(yaml.safe_dump(document))
+    for argv in (['restore', backup_file, *line.link, '--write', 'ram'],
+                 ['diff', backup_file, backup_file]):
+        code, out, err = params(argv)
+        assert code == FAILED and message in err, (argv, out, err)
+    assert line.writes() == []
+
+
+def test_a_file_that_is_not_utf8_is_a_clear_error(tmp_path):
+    backup_file = tmp_path / 'latin1.yaml'
+    backup_file.write_bytes(b'format: vfd_params/1\nmodel: caf\xe9\n')
+    code, _, err = params(['diff', backup_file, backup_file])
+    assert code == FAILED and 'not UTF-8' in err, err
+
+
+def test_the_tools_run_as_python_modules(tmp_path):
+    """The tools run with `python -m` (vfd_ros2.apps.params / .scan did nothing, exit 0)."""
+    import subprocess
+    import sys
+    for module in ('vfd_ros2.apps.params', 'vfd_ros2.apps.scan'):
+        done = subprocess.run([sys.executable, '-m', module, '--help'], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 0 and 'usage:' in done.stdout, (module, done.stdout)
+    done = subprocess.run([sys.executable, '-m', 'vfd_ros2.apps.params', 'diff',
+                           str(tmp_path / 'none.yaml'), str(tmp_path / 'none.yaml')],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == FAILED and 'cannot read' in done.stderr, done.stderr
+
+
 def test_a_running_drive_is_not_restored(make_line, tmp_path):
     profile = shipped_profile('veichi_ehs100')
     commissioned = {item.code: item.value for item in profile.commissioning}

@@ -380,6 +380,11 @@ def _restore(args: argparse.Namespace, backup: Backup, access: Any, out: TextIO)
         print(f'  skip {skip.code}: {skip.why}', file=out)
     for warning in plan.warnings:
         print(f'  warning: {warning}', file=out)
+    for invalid in plan.invalid:
+        print(f'  not valid {invalid.code}: {invalid.why}', file=out)
+    if plan.invalid:
+        raise Refused(f'{len(plan.invalid)} value(s) of {args.file} cannot be written to '
+                      f'{profile.name} (listed above): fix the file; nothing was written')
     if not args.write or not plan.steps:
         return DONE
     running = access.running()
@@ -481,8 +486,15 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
     except (VfdError, ProfileError) as exc:
         print(f'vfd_params: {exc}', file=stderr)
         return FAILED
+    except KeyboardInterrupt:
+        # (a restore's writes handle it themselves: halted, switch back, stopped)
+        print('vfd_params: interrupted (Ctrl-C)', file=stderr)
+        return FAILED
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     return run(argv)
 
+
+if __name__ == '__main__':
+    raise SystemExit(main())

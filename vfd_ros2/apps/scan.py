@@ -587,3 +587,7 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
 
 def main(argv: Sequence[str] | None = None) -> int:
     return run(argv)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

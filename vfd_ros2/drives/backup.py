@@ -53,6 +53,9 @@ FORMAT = 'vfd_params/1'
 
 #: consecutive unanswered reads after which a backup gives up (the drive is gone)
 SILENCE_LIMIT = 3
+#: the largest magnitude a backup file may give a value: beyond every register's range
+#: (a value of 1e308 overflowed the raw conversion)
+MAX_FILE_VALUE = 1e12
 
 
 class ParameterAccess(Protocol):
@@ -158,6 +161,8 @@ class Backup:
             data = yaml.safe_load(Path(path).read_text(encoding='utf-8'))
         except OSError as exc:
             raise ParameterError(f'cannot read {path}: {exc}') from exc
+        except UnicodeDecodeError as exc:
+            raise ParameterError(f'{path} is not UTF-8 text: {exc}') from exc
         except yaml.YAMLError as exc:
             raise ParameterError(f'{path} is not valid YAML: {exc}') from exc
         return cls.from_document(data, str(path))
@@ -170,18 +175,29 @@ class Backup:
             profile = profile_named(str(data.get('profile_file') or data['profile']))
         except (KeyError, ProfileError) as exc:
             raise ParameterError(f'{where}: its drive profile cannot be loaded: {exc}') from exc
+        identity, unreadable, parameters = (data.get(key) or default for key, default in (
+            ('identity', {}), ('unreadable', {}), ('parameters', [])))
+        if not isinstance(identity, Mapping) or not isinstance(unreadable, Mapping):
+            raise ParameterError(f'{where}: identity and unreadable must be mappings '
+                                 '(code: value)')
+        if not isinstance(parameters, list):
+            raise ParameterError(f'{where}: parameters must be a list')
+        try:
+            identity = {str(k): _number(v, f'identity {k}') for k, v in identity.items()}
+        except ValueError as exc:
+            raise ParameterError(f'{where}: {exc}') from exc
         backup = cls(profile=profile.name, profile_file=str(data.get('profile_file') or ''),
-                     model=str(data.get('model', '')),
-                     identity={str(k): float(v) for k, v in (data.get('identity') or {}).items()},
+                     model=str(data.get('model', '')), identity=identity,
                      source=str(data.get('source', '')), taken=str(data.get('taken', '')),
-                     unreadable={str(k): str(v) for k, v in
-                                 (data.get('unreadable') or {}).items()})
-        for number, item in enumerate(data.get('parameters') or []):
+                     unreadable={str(k): str(v) for k, v in unreadable.items()})
+        seen: dict[str, int] = {}
+        for number, item in enumerate(parameters):
             try:
-                code, value = str(item['code']), float(item['value'])
-                if not math.isfinite(value):
-                    raise ValueError(f'value {value}')
-            except (KeyError, TypeError, ValueError) as exc:
+                if not isinstance(item, Mapping):
+                    raise ValueError('not a mapping')
+                code, value = str(item['code']), _number(item['value'], 'value')
+                raw = None if item.get('raw') is None else _integer(item['raw'], 'raw')
+            except (KeyError, ValueError) as exc:
                 raise ParameterError(f'{where}: parameters[{number}] needs a code and a '
                                      f'numeric value ({exc})') from exc
             try:
@@ -189,11 +205,33 @@ class Backup:
             except ParameterError:
                 backup.unknown[code] = f'not a parameter of {profile.name}'
                 continue
+            if parameter.code in seen:
+                # Which one a hand edit meant cannot be told: neither is taken.
+                raise ParameterError(
+                    f'{where}: parameters[{number}] ({code}) and parameters['
+                    f'{seen[parameter.code]}] are both {parameter.code}: keep one')
+            seen[parameter.code] = number
+            if raw is None:
+                raw = round(value / parameter.scale)
             backup.entries[parameter.code] = Entry(
-                parameter.code, value, int(item.get('raw', round(value / parameter.scale))),
-                parameter.name, parameter.unit, str(item.get('text', '')),
-                parameter.access.value)
+                parameter.code, value, raw, parameter.name, parameter.unit,
+                str(item.get('text', '')), parameter.access.value)
         return backup
+
+
+def _number(value: Any, what: str) -> float:
+    """Return a finite number from a file (not a bool or a string); ValueError if not."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f'{what} {value!r} is not a number')
+    if not math.isfinite(value) or abs(value) > MAX_FILE_VALUE:
+        raise ValueError(f'{what} {value!r} is not a finite number a drive can hold')
+    return float(value)
+
+
+def _integer(value: Any, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f'{what} {value!r} is not an integer')
+    return value
 
 
 def _entry(value: ParameterValue) -> Entry:
@@ -334,6 +372,9 @@ class RestorePlan:
     unchanged: int = 0
     read_only: int = 0           # values in the file for reference (measurements, identity)
     warnings: list[str] = field(default_factory=list)
+    # Values of the file that no write could take (out of range, off the resolution,
+    # not an option): a file with any of them is refused whole (a hand edit gone wrong).
+    invalid: list[Skip] = field(default_factory=list)
     # The RAM/EEPROM switch parameter and the file's value: a write of the other
     # kind flips it on the way (drives with a switch_parameter), so it is set
     # back to the file's value after the last write.
@@ -382,7 +423,7 @@ def plan_restore(backup: Backup, live: Backup, access: ParameterAccess,
         try:
             parameter.to_raw(entry.value)
         except ParameterError as exc:
-            plan.skipped.append(Skip(code, f"the file's value is not valid: {exc}"))
+            plan.invalid.append(Skip(code, str(exc)))
             continue
         refusal = access.refusal(code)
         if refusal:
@@ -432,9 +473,15 @@ def execute(plan: RestorePlan, access: ParameterAccess, persistent: bool,
     parameters are not sent, and no stop is attempted on a link that moved.
     """
     result = RestoreResult()
+    switched_back = False
     for number, step in enumerate(plan.steps):
         problem = ''
         try:
+            if step.group == 'link' and not switched_back:
+                # Before the link moves: afterwards the switch is out of reach.
+                switched_back = True
+                if plan.switch is not None:
+                    _switch_back(plan, access, persistent, result, progress)
             if step.stopped_only:
                 running = access.running()
                 if running is None or running:
@@ -459,18 +506,23 @@ def execute(plan: RestorePlan, access: ParameterAccess, persistent: bool,
             problem = f'{step.code}: the link failed: {exc}'
         except VfdError as exc:
             problem = f'{step.code}: {exc}'
+        except KeyboardInterrupt:
+            # Ctrl-C: halt as on a refusal (switch set back, drive stopped, the lists
+            # of what was and was not written), not a traceback and a half-told state.
+            problem = f'interrupted (Ctrl-C) at {step.code}: it may or may not be written'
         if problem:
             result.failed = (step, problem)
             result.not_written = plan.steps[number + 1:]
-            if plan.switch is not None and result.written:
-                try:                             # the writes so far flipped it: set it back
+            if plan.switch is not None:
+                try:        # the writes so far, or the one that failed, may have flipped it
                     _switch_back(plan, access, persistent, result, progress)
                 except VfdError as exc:
                     problem += f'; {plan.switch[0]} (RAM/EEPROM switch) not set back: {exc}'
                     result.failed = (step, problem)
             result.stop = access.stop()
             return result
-    if plan.switch is not None and result.written and not result.not_written:
+    if plan.switch is not None and result.written and not result.not_written and \
+            not switched_back:
         try:
             _switch_back(plan, access, persistent, result, progress)
         except VfdError as exc:
