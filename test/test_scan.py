@@ -358,3 +358,21 @@ def test_canopen_scan_hears_a_boot_up_while_it_listens():
     assert codes == [FOUND], out.getvalue() + err.getvalue()
     row = rows(out.getvalue())[9]
     assert row[3] == 'cia402_velocity' and 'NMT boot-up' in row[6], row
+
+
+def test_a_line_of_garbled_replies_alone_is_nothing_found(tmp_path):
+    """A line whose every reply is garbled: listed, but the exit status is 'nothing'.
+
+    It said 'found', for a line with no usable drive.
+    """
+    from vfd_ros2.sim.rtu_line import LineFaults
+    drive = SimulatedDrive(shipped_profile('boneng_am'), 1)
+    line = SimulatedRtuLine([drive], tmp_path / 'noisy', faults=LineFaults(corrupt_rate=1.0),
+                            tick_period=0.001).start()
+    try:
+        code, out, _ = scan(['--port', str(line.link_path), '--ids', '1-3',
+                             '--baudrates', '115200', '--response-time', '0.02'])
+    finally:
+        line.stop()
+    assert 'garbled reply' in out, out
+    assert code == NOTHING, out

@@ -55,6 +55,8 @@ from ..transports.modbus import ModbusRtuTransport, ModbusTcpTransport
 
 #: exit codes: found something / found nothing / could not scan (bad input, port)
 FOUND, NOTHING, FAILED = 0, 1, 2
+#: the note of an id whose only answer was a frame that did not decode
+GARBLED = 'garbled reply: line noise, or a device at a near framing'
 
 
 class ScanError(VfdError):
@@ -250,7 +252,7 @@ def _sweep(transport: RegisterTransport, ids: Sequence[int], probe: tuple[int, i
             silent = 0
             if answer.problem:
                 results.append((unit, Identification(evidence=answer.describe()), '',
-                                'garbled reply: line noise, or a device at a near framing'))
+                                GARBLED))
             else:
                 identification, identity = _examine(transport, unit, answer, probe, profiles,
                                                     budget, framing)
@@ -582,7 +584,9 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
         except (OSError, VfdError) as exc:
             print(f'vfd_scan: cannot write {args.yaml}: {exc}', file=stderr)
             return FAILED
-    return FOUND if report.found else NOTHING
+    # Garbled replies alone are no drive: a line of noise answers every id at every
+    # baud rate, and 'found' would send a script on to configure nothing.
+    return FOUND if any(GARBLED not in item.notes for item in report.found) else NOTHING
 
 
 def main(argv: Sequence[str] | None = None) -> int:
