@@ -294,6 +294,51 @@ def test_hd2_function_codes_over_sdo(start_segment, make_wheel):
     assert not reply.success and 'above the maximum' in reply.message
 
 
+def test_a_short_frame_loss_is_ridden_through(ros_context, start_segment, veth_link,
+                                              tmp_path):
+    """A frame loss shorter than stale_after leaves every drive online and running.
+
+    80 ms without frames (interference), less than stale_after (0.25 s) and the SM
+    watchdog: the first unanswered state read took every slave for lost (all
+    drives offline, the slaves reset).
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
+    prefix = f'/b{uuid.uuid4().hex[:6]}'
+    config = tmp_path / 'ec_bus.yaml'
+    config.write_text(yaml.safe_dump({
+        'bus': {'name': 'ec0', 'transport.type': 'ethercat',
+                'transport.interface': veth_link.master_interface,
+                'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
+        'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': 'imo_hd2',
+                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
+                   for name, unit in (('left', 1), ('right', 2))}}))
+    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
+        Parameter('config_file', value=str(config))])
+    executor = SingleThreadedExecutor(context=ros_context)
+    for node in (bus, *bus.drive_nodes):
+        executor.add_node(node)
+    spin = spin_in_background(executor, ros_context)
+    drives = list(bus.bus.controllers.values())
+    try:
+        def all_at(velocity: float) -> bool:
+            for c in drives:
+                c.command_velocity(velocity)
+            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
+                       for c in drives)
+        wait_for(lambda: all_at(1.0), 10.0, 'both at 1 rad/s')
+        sim.lose_frames(0.08)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            all_at(1.0)
+            assert all(c.state.online for c in drives), [c.state.stop_reason for c in drives]
+            time.sleep(0.02)
+        assert all(c.state.reconnects == 0 and c.state.running for c in drives)
+    finally:
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
+        bus.destroy_node()
+
+
 def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment, veth_link,
                                                       tmp_path):
     """One slave of a bus lost and found again by the segment's supervisor, not a restart."""

@@ -167,6 +167,7 @@ class SegmentSettings:
     sdo_timeout_s: float = 0.7             # each SDO exchange
     mailbox_poll_s: float = 0.05           # emergency polling period; 0 = only during SDOs
     supervise_s: float = 0.05              # state check period while something is wrong
+    lost_after_s: float = 0.25             # a slave silent this long is lost (not one frame)
     recover: bool = True                   # bring back slaves that vanished
     realtime_priority: int | None = None   # SCHED_FIFO priority of the process-data thread
 
@@ -287,6 +288,7 @@ class EthercatSlave:
         self.al_status = 0
         self.al_status_code = 0
         self.lost = False
+        self.unanswered_since: float | None = None   # its state reads unanswered since
         self.target = ALState.PRE_OP          # the state the supervisor keeps it in
         soem_slave.add_emergency_callback(self._on_emergency)
 
@@ -742,12 +744,25 @@ class EthercatSegment:
 
     def _read_states(self) -> None:
         master = self._require_open()
+        now = time.monotonic()
         with self._state_lock:
             master.read_state()
             for slave in self._slaves:
                 soem = slave._soem
+                state = _state(soem.state)
+                if state is ALState.NONE and not slave.lost:
+                    # No answer. A frame or a few lost (interference; SOEM resends within
+                    # ~30 ms) is not a lost slave: its last state stands until it has
+                    # been silent for lost_after_s. Taking the first unanswered read as
+                    # lost stopped every drive of the segment and reset the slaves.
+                    if slave.unanswered_since is None:
+                        slave.unanswered_since = now
+                    if now - slave.unanswered_since < self.settings.lost_after_s:
+                        continue
+                else:
+                    slave.unanswered_since = None
                 slave.al_status = soem.state
-                slave.state = _state(soem.state)
+                slave.state = state
                 slave.al_status_code = soem.al_status
 
     def _request(self, slave: EthercatSlave, state: ALState, timeout: float | None) -> None:
@@ -929,7 +944,7 @@ class EthercatTransport(Transport):
             cycle_time_s=cycle, sync_mode=mode,
             state_timeout_s=float(settings.get('state_timeout', 2.0)),
             sdo_timeout_s=float(settings.get('sdo_timeout', 0.7)),
-            realtime_priority=priority or None), stale)
+            realtime_priority=priority or None, lost_after_s=stale), stale)
 
     @property
     def description(self) -> str:
@@ -1274,7 +1289,8 @@ class EthercatTransport(Transport):
                                 f'({al_status_text(slave.al_status_code)})')
         if age > self.stale_after:
             self.count_unit(unit, 'timeouts')
-            raise CommTimeout(f'EtherCAT slave {unit}: no process data for {age:.2f} s '
+            since = f'for {age:.2f} s' if slave.inputs_time else 'yet'
+            raise CommTimeout(f'EtherCAT slave {unit}: no process data {since} '
                               f'(link down or working-counter errors on '
                               f'{self.settings.interface})')
         return slave.inputs()
