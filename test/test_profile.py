@@ -621,3 +621,15 @@ def test_an_exception_code_passes_only_where_the_standard_says_so_and_the_manual
     """Busy and a gateway's codes pass (a failed exchange); a manual's own meaning lasts."""
     modbus = shipped_profile(name).modbus
     assert {c for c in lasting | passing if modbus.lasting_refusal(c)} == lasting
+
+
+def test_a_code_whose_meaning_only_a_write_can_have_passes_on_a_read():
+    """A code whose manual meaning only a write can have passes when it answers a read.
+
+    The AM's 06 is 'modify only while stopped': to a status read it is the
+    standard's busy (it blocked the drive until a restart), to a write the AM's
+    own refusal.
+    """
+    modbus = shipped_profile('boneng_am').modbus
+    assert modbus.lasting_refusal(6, write=True) and not modbus.lasting_refusal(6, write=False)
+    assert modbus.lasting_refusal(2, write=False)          # illegal address: lasting anyway

@@ -400,8 +400,10 @@ def _restore(args: argparse.Namespace, backup: Backup, access: Any, out: TextIO)
                      progress=lambda text: print(f'  {text}', file=out))
     planned = sum(1 for step, _, _ in result.written if step in plan.steps)
     print(f'written: {planned} of {len(plan.steps)} ({args.write.upper()})'
-          + (' and the RAM/EEPROM switch set back' if planned < len(result.written) else ''),
-          file=out)
+          + (' and the RAM/EEPROM switch set back' if planned < len(result.written) and
+             not result.warnings else ''), file=out)
+    for warning in result.warnings:
+        print(f'  warning: {warning}', file=out)
     for step, value, note in result.written:
         if value is None:
             print(f'  {step.code}: {note}', file=out)

@@ -576,8 +576,10 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
     print(format_table(report.found) if report.found else 'nothing answered', file=stdout)
     for line in report.skipped:
         print(f'not covered: {line}', file=stdout)
-    progress(f'{len(report.found)} found, {report.requests} requests, '
-             f'{report.seconds:.1f} s')
+    garbled = sum(1 for item in report.found if GARBLED in item.notes)
+    progress(f'{len(report.found) - garbled} found'
+             + (f' (and {garbled} garbled replies)' if garbled else '')
+             + f', {report.requests} requests, {report.seconds:.1f} s')
     if args.yaml is not None and report.found:
         try:
             write_yaml(report.found, args.yaml, progress)
@@ -586,7 +588,7 @@ def run(argv: Sequence[str] | None = None, stdout: TextIO = sys.stdout,
             return FAILED
     # Garbled replies alone are no drive: a line of noise answers every id at every
     # baud rate, and 'found' would send a script on to configure nothing.
-    return FOUND if any(GARBLED not in item.notes for item in report.found) else NOTHING
+    return FOUND if len(report.found) > garbled else NOTHING
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -472,7 +472,12 @@ class DriveController:
                 self.drive.apply(0.0, run=False, idle_action='stop')
                 self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
             except VfdError as exc:
-                log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
+                if getattr(self.drive, 'asserted_command', None) == 'stop':
+                    log.warning('%s at shutdown: the stop command is written, but %s',
+                                self.drive.hardware_id, exc)
+                else:
+                    log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id,
+                                exc)
         self.drive.close()
         self.link.closed()
         self._actions.close('the control loop ended before this action ran')

@@ -456,6 +456,7 @@ class RestoreResult:
     failed: tuple[Step, str] | None = None
     not_written: list[Step] = field(default_factory=list)
     stop: str = ''               # what was done to leave the drive stopped, after a halt
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def complete(self) -> bool:
@@ -521,6 +522,14 @@ def execute(plan: RestorePlan, access: ParameterAccess, persistent: bool,
                     result.failed = (step, problem)
             result.stop = access.stop()
             return result
+    if switched_back and plan.switch is not None and any(
+            step.group == 'link' for step, _, _ in result.written):
+        # Set back before the link settings; a write of the other kind flips it again
+        # on the way, and the drive answers at its new setting now, out of reach here.
+        code = plan.switch[0]
+        result.warnings.append(
+            f"{code} (RAM/EEPROM switch) may be flipped again by the link settings' "
+            f"writes: check it at the drive's new address or baud rate")
     if plan.switch is not None and result.written and not result.not_written and \
             not switched_back:
         try:

@@ -273,7 +273,7 @@ class ModbusDrive(DriveOnLink):
         text = self.profile.modbus.exception_codes.get(exc.code, exc.text)
         return ProtocolException(exc.code, text, exc.request)
 
-    def _transact(self, call: Callable[[], T]) -> T:
+    def _transact(self, call: Callable[[], T], write: bool = False) -> T:
         """One exchange; a garbled reply is retried once at once (the line resyncs).
 
         A timeout is not retried: it already cost a full timeout, and the next
@@ -289,7 +289,7 @@ class ModbusDrive(DriveOnLink):
                 return call()
         except ProtocolException as exc:
             explained = self.explain(exc)
-            if not self.profile.modbus.lasting_refusal(exc.code):
+            if not self.profile.modbus.lasting_refusal(exc.code, write):
                 # Busy, a device failure, a gateway whose drive is silent: it may pass,
                 # so a failed exchange (offline after comm_loss_threshold, reconnected),
                 # never a status value refused until the next connect.
@@ -306,7 +306,7 @@ class ModbusDrive(DriveOnLink):
         return words
 
     def _write(self, address: int, words: list[int]) -> None:
-        self._transact(lambda: self._write_words(address, words))
+        self._transact(lambda: self._write_words(address, words), write=True)
 
     def _write_words(self, address: int, words: list[int]) -> None:
         codes = self.profile.modbus.function_codes

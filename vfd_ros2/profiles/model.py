@@ -202,15 +202,22 @@ class ModbusSpec:
             code = codes.get('illegal_address')
         return STANDARD_EXCEPTION_FOR[situation] if code is None else code
 
-    def lasting_refusal(self, code: int) -> bool:
+    def lasting_refusal(self, code: int, write: bool = True) -> bool:
         """Return whether exception ``code`` is this drive's answer to the request itself.
 
         Asked again, it refuses again: every code but those the standard gives a
         passing condition (busy, acknowledge, a gateway whose drive does not
         answer), unless this drive's manual gives the code a meaning of its own
         (the BONENG AM's 05 is "read only", its 06 "modify only while stopped").
+        A meaning only a write can have is not the answer to a read: an AM's 06 to
+        a status read is the standard's busy.
         """
-        return code not in PASSING or code in self.exception_codes
+        if code not in PASSING:
+            return True
+        if code not in self.exception_codes:
+            return False
+        return write or code not in (self.exception_code('read_only'),
+                                     self.exception_code('stopped_only'))
 
 
 class DirectionMode(str, enum.Enum):
