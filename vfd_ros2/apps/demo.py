@@ -11,7 +11,8 @@ and exits (0 if both wheels followed the profile).
   demo --agv        the simulated AGV instead (launch/sim_agv.launch.py without ros2
                     launch): both drives on one RS-485 line behind one bus_node, driven
                     through /agv/cmd_vel by the diff_drive helper; halfway the right
-                    drive is pulled off the line and plugged back
+                    drive is pulled off the line (both wheels stop: one wheel alone
+                    would turn the robot) and plugged back
   demo --canopen    the same profile as the default on two simulated CiA 402 drives on one
                     CAN bus (python-can's in-process virtual bus, so the simulated drives
                     and the drive nodes run in this process)
@@ -198,6 +199,11 @@ def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
             if step == 2 and wheel.name == 'right_wheel':
                 ok = status is not None and not status.online
                 what = 'offline while unplugged'
+            elif step == 2:
+                # diff_drive holds both wheels at zero while one does not follow: the
+                # left wheel alone would turn the robot about the right one.
+                ok = status is not None and abs(status.measured_velocity) <= TOLERANCE
+                what = 'stopped with the other wheel'
             else:
                 ok = status is not None and abs(status.measured_velocity -
                                                 wanted[wheel.name]) <= TOLERANCE
