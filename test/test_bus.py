@@ -242,20 +242,30 @@ def test_shipped_bus_config_is_valid(name):
     assert [d.namespace for d in config.drives] == ['/agv/left_wheel', '/agv/right_wheel']
 
 
-def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
-    """bus_node's Bus on CANopen: one thread serves every node; a dead node stalls nobody."""
-    from vfd_ros2.control.bus import Bus
+def canopen_bus(node_ids: tuple[int, ...], bus_settings: dict | None = None,
+                drive_settings: dict | None = None):
+    """Start simulated CiA 402 drives on a fresh virtual CAN channel; build a Bus of them.
+
+    Return the Bus (not started), the simulated drives by node id, the simulated
+    CAN bus (stop it after) and the channel's name.
+    """
     from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
     profile = load_profile('cia402_velocity')
     channel = f'vfdbus{uuid.uuid4().hex[:6]}'
-    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)]
-    with_bus = SimulatedCanBus(sims, channel).start()
+    sims = {node_id: SimulatedCanopenDrive(profile, node_id) for node_id in node_ids}
+    simulated = SimulatedCanBus(list(sims.values()), channel).start()
     config = parse_bus_config({
         'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
-                'transport.channel': channel, 'control_rate': 50.0},
+                'transport.channel': channel, 'control_rate': 50.0, **(bus_settings or {})},
         'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
-                             'gear_ratio': 10.0, 'auto_enable': True} for n in (1, 2)}})
-    bus = Bus(config)
+                             'gear_ratio': 10.0, **(drive_settings or {})} for n in node_ids}})
+    return Bus(config), sims, simulated, channel
+
+
+def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
+    """bus_node's Bus on CANopen: one thread serves every node; a dead node stalls nobody."""
+    bus, by_id, with_bus, _ = canopen_bus((1, 2), drive_settings={'auto_enable': True})
+    sims = list(by_id.values())
     assert len(bus.transports) == 1            # one transport (one CAN channel), one thread
     bus.start()
     try:
@@ -306,18 +316,9 @@ def test_a_canopen_drive_connecting_never_holds_up_the_others():
     import can
 
     from vfd_ros2.protocol.cia402 import State
-    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
-    profile = load_profile('cia402_velocity')
-    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
-    sims = {node_id: SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2, 3)}
-    with_bus = SimulatedCanBus(list(sims.values()), channel).start()
-    config = parse_bus_config({
-        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
-                'transport.channel': channel, 'transport.timeout': 0.4, 'control_rate': 100.0},
-        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
-                             'gear_ratio': 10.0, 'auto_enable': True, 'command_timeout': 0.5,
-                             'reconnect_period': 0.05} for n in (1, 2, 3)}})
-    bus = Bus(config)
+    bus, sims, with_bus, channel = canopen_bus(
+        (1, 2, 3), {'transport.timeout': 0.4, 'control_rate': 100.0},
+        {'auto_enable': True, 'command_timeout': 0.5, 'reconnect_period': 0.05})
     listener = can.Bus(interface='virtual', channel=channel)
     rpdo_times: list[float] = []
     notifier = can.Notifier(listener, [lambda frame: rpdo_times.append(time.monotonic())
@@ -368,18 +369,9 @@ def test_a_canopen_bus_stops_its_running_drives_before_it_waits_for_a_connect():
     waited for first, and the running drives kept their last command meanwhile.
     """
     from vfd_ros2.protocol.cia402 import State
-    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
-    profile = load_profile('cia402_velocity')
-    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
-    sims = {node_id: SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)}
-    with_bus = SimulatedCanBus(list(sims.values()), channel).start()
-    config = parse_bus_config({
-        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
-                'transport.channel': channel, 'transport.timeout': 2.0, 'control_rate': 100.0},
-        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
-                             'gear_ratio': 10.0, 'auto_enable': True,
-                             'reconnect_period': 0.05} for n in (1, 2)}})
-    bus = Bus(config)
+    bus, sims, with_bus, _ = canopen_bus(
+        (1, 2), {'transport.timeout': 2.0, 'control_rate': 100.0},
+        {'auto_enable': True, 'reconnect_period': 0.05})
     bus.start()
     try:
         first, second = bus.controllers['n1'], bus.controllers['n2']
@@ -406,17 +398,7 @@ def test_a_canopen_bus_may_run_faster_than_its_written_protection_was_sized_for(
     a shorter one would do, and the longer one still fits (it was refused). A rate
     that needs a longer deadline than written is refused, changing nothing.
     """
-    from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
-    profile = load_profile('cia402_velocity')
-    channel = f'vfdbus{uuid.uuid4().hex[:6]}'
-    sims = [SimulatedCanopenDrive(profile, node_id) for node_id in (1, 2)]
-    with_bus = SimulatedCanBus(sims, channel).start()
-    config = parse_bus_config({
-        'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
-                'transport.channel': channel, 'control_rate': 50.0},
-        'drives': {f'n{n}': {'drive.profile': 'cia402_velocity', 'transport.unit_id': n,
-                             'gear_ratio': 10.0} for n in (1, 2)}})
-    bus = Bus(config)
+    bus, _, with_bus, _ = canopen_bus((1, 2))
     bus.start()
     try:
         wait_for(lambda: all(c.state.online for c in bus.controllers.values()), 10.0,

@@ -8,10 +8,11 @@ a child process on the other end; the nodes are the real ``DriveNode`` and
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 import uuid
-from typing import Any
+from typing import Any, Iterator
 
 import pytest
 import yaml
@@ -103,28 +104,39 @@ def test_drive_node_reaches_op_follows_velocity_and_reports(start_segment, make_
                          for d in wheel.diagnostics for s in d.status), 3.0, 'diagnostics')
 
 
-def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, veth_link,
-                                                   tmp_path):
-    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+@contextlib.contextmanager
+def bus_node_on_segment(ros_context, veth_link, tmp_path,
+                        profiles: tuple[str, str]) -> Iterator[BusNode]:
+    """Spin a bus_node over the emulated segment: wheels 'left' (slave 1), 'right' (2)."""
     prefix = f'/b{uuid.uuid4().hex[:6]}'
     config = tmp_path / 'ec_bus.yaml'
     config.write_text(yaml.safe_dump({
         'bus': {'name': 'ec0', 'transport.type': 'ethercat',
                 'transport.interface': veth_link.master_interface,
                 'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
-        'drives': {
-            'left': {'namespace': f'{prefix}/left', 'drive.profile': 'imo_hd2',
-                     'transport.unit_id': 1, 'auto_enable': True, **BASE},
-            'right': {'namespace': f'{prefix}/right', 'drive.profile': 'boneng_mh',
-                      'transport.unit_id': 2, 'auto_enable': True, **BASE}}}))
+        'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': profile,
+                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
+                   for unit, (name, profile) in enumerate(zip(('left', 'right'), profiles),
+                                                          start=1)}}))
     bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
         Parameter('config_file', value=str(config))])
     executor = SingleThreadedExecutor(context=ros_context)
     for node in (bus, *bus.drive_nodes):
         executor.add_node(node)
     spin = spin_in_background(executor, ros_context)
-    controllers = bus.bus.controllers
     try:
+        yield bus
+    finally:
+        spin.stop()
+        executor.shutdown(timeout_sec=1.0)
+        bus.destroy_node()
+
+
+def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, veth_link,
+                                                   tmp_path):
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'boneng_mh')) as bus:
+        controllers = bus.bus.controllers
         wait_for(lambda: all(c.state.online for c in controllers.values()), 10.0, 'both online')
         assert len(bus.bus.transports) == 1                      # one segment ...
         cycle_threads = [t for t in threading.enumerate()
@@ -142,10 +154,6 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
         assert sim.drive(0)['mode'] == 9                         # HD2 in csv
         assert sim.drive(1)['controlword'] & 0x70 == 0x70        # MH CoE_VL: ramp bits set
         assert sim.drive(1)['velocity_rpm'] > 90.0
-    finally:
-        spin.stop()
-        executor.shutdown(timeout_sec=1.0)
-        bus.destroy_node()
 
 
 def test_identity_mismatch_is_a_clear_error(start_segment, make_wheel):
@@ -303,23 +311,8 @@ def test_a_short_frame_loss_is_ridden_through(ros_context, start_segment, veth_l
     drives offline, the slaves reset).
     """
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
-    prefix = f'/b{uuid.uuid4().hex[:6]}'
-    config = tmp_path / 'ec_bus.yaml'
-    config.write_text(yaml.safe_dump({
-        'bus': {'name': 'ec0', 'transport.type': 'ethercat',
-                'transport.interface': veth_link.master_interface,
-                'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
-        'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': 'imo_hd2',
-                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
-                   for name, unit in (('left', 1), ('right', 2))}}))
-    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
-        Parameter('config_file', value=str(config))])
-    executor = SingleThreadedExecutor(context=ros_context)
-    for node in (bus, *bus.drive_nodes):
-        executor.add_node(node)
-    spin = spin_in_background(executor, ros_context)
-    drives = list(bus.bus.controllers.values())
-    try:
+    with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
+        drives = list(bus.bus.controllers.values())
         def all_at(velocity: float) -> bool:
             for c in drives:
                 c.command_velocity(velocity)
@@ -333,33 +326,14 @@ def test_a_short_frame_loss_is_ridden_through(ros_context, start_segment, veth_l
             assert all(c.state.online for c in drives), [c.state.stop_reason for c in drives]
             time.sleep(0.02)
         assert all(c.state.reconnects == 0 and c.state.running for c in drives)
-    finally:
-        spin.stop()
-        executor.shutdown(timeout_sec=1.0)
-        bus.destroy_node()
 
 
 def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment, veth_link,
                                                       tmp_path):
     """One slave of a bus lost and found again by the segment's supervisor, not a restart."""
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
-    prefix = f'/b{uuid.uuid4().hex[:6]}'
-    config = tmp_path / 'ec_bus.yaml'
-    config.write_text(yaml.safe_dump({
-        'bus': {'name': 'ec0', 'transport.type': 'ethercat',
-                'transport.interface': veth_link.master_interface,
-                'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
-        'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': 'imo_hd2',
-                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
-                   for name, unit in (('left', 1), ('right', 2))}}))
-    bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
-        Parameter('config_file', value=str(config))])
-    executor = SingleThreadedExecutor(context=ros_context)
-    for node in (bus, *bus.drive_nodes):
-        executor.add_node(node)
-    spin = spin_in_background(executor, ros_context)
-    left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
-    try:
+    with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
+        left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
         def both_at(velocity: float) -> bool:
             for c in (left, right):
                 c.command_velocity(velocity)
@@ -393,10 +367,6 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         # by the supervisor, in place: the left wheel never went offline meanwhile
         assert left.state.online and left.state.reconnects == left_reconnects
         wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
-    finally:
-        spin.stop()
-        executor.shutdown(timeout_sec=1.0)
-        bus.destroy_node()
 
 
 def test_sync_mode_dc(start_segment, make_wheel):

@@ -139,8 +139,8 @@ class WheelInput:
         self.state = str(msg.state)
         self.received = now
 
-    def not_following(self, now: Time, timeout_s: float) -> str:
-        """Return why this wheel may not follow its commands ('' if nothing says so)."""
+    def _unheard(self, now: Time, timeout_s: float) -> str:
+        """Return why nothing current is known of this wheel ('' if its status is fresh)."""
         if self.received is None:
             return f'no status from the {self.name} wheel yet'
         age = (now - self.received).nanoseconds * 1e-9
@@ -148,6 +148,12 @@ class WheelInput:
             return f'{self.name} wheel status is {age:.2f} s old'
         if not self.online:
             return f'{self.name} wheel drive is offline'
+        return ''
+
+    def not_following(self, now: Time, timeout_s: float) -> str:
+        """Return why this wheel may not follow its commands ('' if nothing says so)."""
+        if unheard := self._unheard(now, timeout_s):
+            return unheard
         if self.fault:
             return f'{self.name} wheel drive has a fault'
         if self.state in NOT_FOLLOWING:
@@ -156,13 +162,8 @@ class WheelInput:
 
     def problem(self, now: Time, timeout_s: float) -> str:
         """Return why this wheel's speed cannot be used ('' if it can)."""
-        if self.received is None:
-            return f'no status from the {self.name} wheel yet'
-        age = (now - self.received).nanoseconds * 1e-9
-        if age > timeout_s:
-            return f'{self.name} wheel status is {age:.2f} s old'
-        if not self.online:
-            return f'{self.name} wheel drive is offline'
+        if unheard := self._unheard(now, timeout_s):
+            return unheard
         if not math.isfinite(self.velocity_rad_s):
             return f'{self.name} wheel measured_velocity is not a number'
         return ''
