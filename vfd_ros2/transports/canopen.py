@@ -523,7 +523,7 @@ class _Link:
     supervise_timeout: float = 0.0
     supervise_from: float = 0.0
     subscriptions: list[tuple[int, Callable[..., None]]] = field(default_factory=list)
-    bad_tpdo: dict[int, tuple[float, int]] = field(default_factory=dict)  # stamp, bytes
+    bad_tpdo: dict[int, float] = field(default_factory=dict)
     tpdo_stamp: dict[int, float] = field(default_factory=dict)   # the last frame's stamp
     tpdo_heard: dict[int, float] = field(default_factory=dict)   # when it was taken (host)
     synchronous: bool = False      # its RPDOs take effect at the next SYNC
@@ -895,8 +895,8 @@ class CanopenTransport(Transport):
         if stamp is None:
             return None
         if len(data) * 8 < pdo.length:
-            if link.bad_tpdo.get(number, (None,))[0] != stamp:
-                link.bad_tpdo[number] = (stamp, len(data))
+            if link.bad_tpdo.get(number) != stamp:
+                link.bad_tpdo[number] = stamp
                 self.count(unit, 'bad_frames')
             return None
         if link.tpdo_stamp.get(number) != stamp:
@@ -914,12 +914,15 @@ class CanopenTransport(Transport):
         Read after ``received``: a node that sends its TPDO too short (a mapping that
         differs from the one written) is then told from a node that sends none.
         """
-        link = self._link(unit)
-        bad = link.bad_tpdo.get(number)
-        if bad is None or link.node is None or bad[0] != link.node.tpdo.map[number].timestamp:
+        node = self._link(unit).node
+        if node is None:
             return None
-        need = link.node.tpdo.map[number].length // 8
-        return f'TPDO{number} from node {unit} has {bad[1]} bytes where its mapping needs {need}'
+        pdo = node.tpdo.map[number]
+        stamp, data = pdo.timestamp, pdo.data      # one frame: the library replaces both
+        if stamp is None or len(data) * 8 >= pdo.length:
+            return None
+        return (f'TPDO{number} from node {unit} has {len(data)} bytes where its mapping '
+                f'needs {pdo.length // 8}')
 
     def tpdo_heard(self, unit: int, number: int) -> float | None:
         """Return when ``received`` first took the newest well-formed TPDO ``number``.
