@@ -14,7 +14,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import yaml
 
@@ -122,6 +122,7 @@ class Bus:
             self.controllers[entry.key] = build_controller(
                 {**config.settings, **entry.settings},
                 transport=self.transport if shared or entry is config.drives[0] else None)
+        self._all = tuple(self.controllers.values())   # fixed from here on
         self.transports = list({id(c.drive.transport): c.drive.transport
                                 for c in self.controllers.values()}.values())
         for controller in self.controllers.values():
@@ -233,14 +234,21 @@ class Bus:
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
 
-    def _serving(self) -> list[DriveController]:
-        """Return the drives this thread serves: all but one connecting beside the cycle."""
+    def _serving(self) -> Sequence[DriveController]:
+        """Return the drives this thread serves: all but one connecting beside the cycle.
+
+        Called before every status read and wait (``preempt_at``): while nothing
+        connects beside the cycle, every bus but a reconnecting CANopen one, it
+        builds nothing.
+        """
         beside = self._beside
         if beside is not None and not beside[1].is_alive():
             self._beside = beside = None
-        return [c for c in self.controllers.values() if beside is None or c is not beside[0]]
+        if beside is None:
+            return self._all
+        return [c for c in self._all if c is not beside[0]]
 
-    def _connect_beside(self, controllers: list[DriveController]) -> None:
+    def _connect_beside(self, controllers: Sequence[DriveController]) -> None:
         """Start the next due drive's connect on a thread of its own (one at a time).
 
         On a link that allows it (``Transport.connects_beside_the_cycle``), a connect
@@ -269,7 +277,7 @@ class Bus:
         except Exception as exc:  # noqa: BLE001 - the thread must end with the drive offline
             log.exception('%s: connect failed: %s', controller.drive.hardware_id, exc)
 
-    def _connect_candidates(self, controllers: list[DriveController]
+    def _connect_candidates(self, controllers: Sequence[DriveController]
                             ) -> tuple[dict[DriveController, float], float]:
         """Offline drives due to connect this cycle, with their planned cost, and the budget.
 
