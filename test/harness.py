@@ -182,13 +182,17 @@ def ros_context():
 
 @pytest.fixture
 def make_harness(ros_context, tmp_path):
-    """Return a harness factory; it takes profile=, sim_initial= and node_parameters=."""
+    """Return a harness factory; it takes profile=, sim_initial= and node_parameters=.
+
+    It waits until the drive is online, unless told ``online=False``.
+    """
     made: list[DriveHarness] = []
 
-    def make(**kwargs: Any) -> DriveHarness:
+    def make(online: bool = True, **kwargs: Any) -> DriveHarness:
         harness = DriveHarness(ros_context, str(tmp_path / f'line{len(made)}'), **kwargs)
         made.append(harness)
-        harness.wait_status(lambda s: s.online, 10.0, 'drive online')
+        if online:
+            harness.wait_status(lambda s: s.online, 10.0, 'drive online')
         return harness
     yield make
     for harness in made:

@@ -400,6 +400,18 @@ def test_comm_loss_is_reported_and_recovered(make_harness, ros_context):
                   'moving again with fresh commands')
 
 
+def test_a_drive_never_connected_reports_no_protection_and_a_comm_loss(make_harness):
+    # unit 2 on the line: nobody answers, so nothing was ever written to a drive
+    h = make_harness(online=False,
+                     node_parameters={'transport.unit_id': 2, 'drive_comm_timeout': 0.3})
+    status = h.wait_status(lambda s: 'no reply' in s.stop_reason, 5.0, 'a connect failed')
+    assert not status.online and status.host_loss_timeout == 0.0
+    assert status.host_loss_protection.startswith('none: not written yet'), \
+        status.host_loss_protection
+    entry = h.node.diagnostic_status()
+    assert entry.level == DiagnosticStatus.ERROR and 'no reply' in entry.message, entry
+
+
 def test_a_fault_other_than_comm_loss_found_at_connect_stays_latched(make_harness):
     h = make_harness(node_parameters={'auto_enable': True})
     h.stream(1.0)

@@ -12,6 +12,7 @@ import time
 
 import pytest
 import yaml
+from diagnostic_msgs.msg import DiagnosticStatus
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
@@ -27,6 +28,7 @@ from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
 from vfd_ros2.ros.bus_node import ManagedBusNode
 from vfd_ros2.ros.drive_node import ManagedDriveNode, make_drive_node
 from vfd_ros2.ros.executable import spin_in_background
+from vfd_ros2.ros.managed import LINK_CLOSED, NOT_ACTIVE
 from vfd_ros2.sim.model import SimulatedDrive
 from vfd_ros2.sim.rtu_line import SimulatedRtuLine
 
@@ -78,7 +80,8 @@ def test_drive_every_transition_at_the_simulated_drive(managed):
     assert state(h.tester, node) == State.PRIMARY_STATE_UNCONFIGURED
     h.stream(2.0)                                    # a planner already commanding
     assert h.sim.requests == 0, 'unconfigured: the link is not even opened'
-    assert not h.trigger('enable').success
+    reply = h.trigger('enable')
+    assert not reply.success and 'configure it first' in reply.message, reply.message
 
     assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
     assert state(h.tester, node) == State.PRIMARY_STATE_INACTIVE
@@ -86,7 +89,9 @@ def test_drive_every_transition_at_the_simulated_drive(managed):
     h.wait_cycles(20)
     assert h.sim.speed_rpm == 0.0 and not h.sim.output_active, 'nothing moves before activate'
     reply = h.trigger('enable')
-    assert not reply.success and 'not active' in reply.message
+    assert not reply.success and 'activate it first' in reply.message, reply.message
+    # ~/status names what holds it: activate, not a service that is refused now
+    h.wait_status(lambda s: s.stop_reason == NOT_ACTIVE, 2.0, 'held by lifecycle, said so')
 
     assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
     assert state(h.tester, node) == State.PRIMARY_STATE_ACTIVE
@@ -97,13 +102,19 @@ def test_drive_every_transition_at_the_simulated_drive(managed):
     wait_for(lambda: h.sim.speed_rpm == 0.0, 3.0, 'motor stopped by deactivate')
     h.wait_cycles(20)
     assert h.sim.speed_rpm == 0.0, 'held while inactive, commands still arriving'
+    h.wait_status(lambda s: s.stop_reason == NOT_ACTIVE and s.state == 'stopped', 2.0,
+                  'stopped and held by lifecycle, said so')
 
     assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)   # auto_enable again
     wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'moving again after re-activate')
     assert change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
     assert change(h.tester, node, Transition.TRANSITION_CLEANUP)
     assert state(h.tester, node) == State.PRIMARY_STATE_UNCONFIGURED
-    h.wait_status(lambda s: not s.online, 3.0, 'offline after cleanup')
+    # closed on purpose, not lost: said so, and no comm-loss ERROR on /diagnostics
+    h.wait_status(lambda s: not s.online and s.stop_reason == LINK_CLOSED, 3.0,
+                  'offline after cleanup, the link closed on purpose')
+    entry = h.node.diagnostic_status()
+    assert entry.level == DiagnosticStatus.STALE and LINK_CLOSED in entry.message, entry
     before = h.sim.requests
     h.wait_status(lambda s: True, 1.0)               # the executor went on
     time.sleep(0.2)

@@ -48,6 +48,11 @@ class ActionQueue:
         self._refusal: str | None = NOT_SERVED
         self._gate = threading.Lock()
 
+    @property
+    def serving(self) -> bool:
+        """Whether requests are queued for a loop (not answered at once with a refusal)."""
+        return self._refusal is None
+
     def open(self) -> None:
         """Queue requests from now on: a loop serves them (call before it advances)."""
         with self._gate:

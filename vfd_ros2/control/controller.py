@@ -173,7 +173,8 @@ class DriveController:
         #: counts_per_rev and rated torque
         self.joint = JointTracker(joint_config(
             drive.profile, getattr(drive, 'scaling', None) or VelocityScaling()))
-        self._state = DriveState(hardware_id=drive.hardware_id, protection=self.protection)
+        self._state = DriveState(hardware_id=drive.hardware_id,
+                                 protection=self._protection_written())
 
     # --- sizing -------------------------------------------------------------------
 
@@ -482,20 +483,34 @@ class DriveController:
         self.link.closed()
         self._actions.close('the control loop ended before this action ran')
 
+    @property
+    def serving_actions(self) -> bool:
+        """Whether a loop (its own or a bus's) serves service actions now."""
+        return self._actions.serving
+
     def open_for_actions(self) -> None:
         """Queue service actions from now on: a loop (its own or a bus's) serves them."""
         self._actions.open()
 
-    def mark_closed(self) -> None:
+    def mark_closed(self, reason: str) -> None:
         """Publish an offline snapshot after the loop ended (a managed node's cleanup).
 
         Without it ``state`` keeps the last cycle's (online, maybe running) until
-        the loop runs again. Call only while no loop runs this controller.
+        the loop runs again; ``reason`` says why the link is closed (not a comm loss).
+        Call only while no loop runs this controller.
         """
+        self.link.closed(reason)
         self._reading = Reading()
         self._publish_state()
 
     # --- internals -----------------------------------------------------------------
+
+    def _protection_written(self) -> HostLossProtection:
+        """Return the drive-side protection as the last connect set it (none before any)."""
+        if self.link.first_connect:
+            return replace(self.protection, mechanism='', timeout=0.0,
+                           note='not written yet: the drive has not been connected')
+        return self.protection_applied or self.protection
 
     def _commands_fresh(self) -> bool:
         with self._lock:
@@ -505,7 +520,8 @@ class DriveController:
         with self._lock:
             expired, age = self._watchdog.expired, self._watchdog.age
         return Conditions(online=self.link.online, link_error=self.link.error,
-                          fault=self._reading.fault, unsafe=self._reading.unsafe,
+                          link_closed=self.link.closed_reason, fault=self._reading.fault,
+                          unsafe=self._reading.unsafe,
                           watchdog_expired=expired, watchdog_age=age,
                           command_timeout=self.config.command_timeout)
 
@@ -729,7 +745,8 @@ class DriveController:
             comm_faults_cleared=self._comm_faults_cleared,
             loop_errors=self.loop_errors,
             link_error=self.link.error,
-            protection=self.protection_applied or self.protection,
+            link_closed=self.link.closed_reason,
+            protection=self._protection_written(),
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused
             + ((self._command_refused,) if self._command_refused else ()),
             link_notes=self.drive.transport.link_notes + self.loop_notes,

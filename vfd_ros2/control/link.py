@@ -29,6 +29,7 @@ class LinkSupervisor:
         self.online = False
         self.reconnects = 0
         self.error = ''              # why the link failed last ('' while healthy)
+        self.closed_reason = ''      # why the host closed it on purpose ('' = it did not)
         self._ever_online = False
         self._failed_cycles = 0
         self._failed_this_cycle = False
@@ -52,11 +53,12 @@ class LinkSupervisor:
         self._ever_online = True
         self.online = True
         self._failed_cycles = 0
-        self.error = self._connect_error = ''
+        self.error = self._connect_error = self.closed_reason = ''
         log.info('%s online', self.name)
 
     def connect_failed(self, exc: VfdError) -> None:
         self.error = str(exc)
+        self.closed_reason = ''
         self._next_attempt = self._clock() + self.retry_period
         # Why a drive stays offline (a value it refuses at connect, a silent node)
         # goes to the log once per reason, not once per attempt.
@@ -88,5 +90,7 @@ class LinkSupervisor:
             return True
         return False
 
-    def closed(self) -> None:
+    def closed(self, reason: str = 'the link is closed: the control loop ended') -> None:
+        """Mark the link closed by the host on purpose (not a comm loss); ``reason`` says why."""
         self.online = False
+        self.closed_reason = reason

@@ -23,6 +23,8 @@ class Intent:
     stopped: bool = False           # ~/stop latches until ~/enable
     idle_action: str = 'stop'       # what "not running" writes: stop, disable, quick_stop
     fault_latched: bool = False     # a fault was seen; only ~/reset_fault clears it
+    held: str = ''                  # why motion is held beyond the services ('' = not held):
+                                    # a managed node not active; the reason tells what to do
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,7 @@ class Conditions:
 
     online: bool
     link_error: str
+    link_closed: str                 # why the host closed the link on purpose ('' = it did not)
     fault: FaultInfo
     unsafe: str                      # the drive layer's reason it must not run ('' = none)
     watchdog_expired: bool
@@ -41,11 +44,14 @@ class Conditions:
 def decide(intent: Intent, now: Conditions) -> tuple[RunState, str]:
     """Return RUNNING and '', or the first state that holds the drive idle and why."""
     if not now.online:
-        return RunState.OFFLINE, f'no valid reply from the drive: {now.link_error}'
+        return RunState.OFFLINE, now.link_closed or \
+            f'no valid reply from the drive: {now.link_error}'
     if now.fault.active or intent.fault_latched:
         fault = now.fault
         text = f'fault {fault.display} {fault.name}' if fault.active else 'fault (cleared)'
         return RunState.FAULT, f'{text}: call ~/reset_fault'
+    if intent.held:
+        return (RunState.STOPPED if intent.enabled else RunState.DISABLED), intent.held
     if not intent.enabled:
         return RunState.DISABLED, 'disabled: call ~/enable'
     if intent.stopped:

@@ -88,6 +88,7 @@ class DriveState(NamedTuple):
     comm_faults_cleared: int = 0    # comm-loss faults of the driver's absence reset at connect
     loop_errors: int = 0            # exceptions inside the loop: each one is a bug
     link_error: str = ''            # why the link failed last ('' while healthy)
+    link_closed: str = ''           # why the host closed the link on purpose ('' = it did not)
     protection: HostLossProtection = HostLossProtection()
     unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
     link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)

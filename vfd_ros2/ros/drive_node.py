@@ -39,6 +39,7 @@ from std_srvs.srv import Trigger
 from vfd_ros2.msg import DriveFault, DriveStatus
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
+from ..control.actions import NOT_SERVED
 from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
@@ -291,7 +292,8 @@ class DriveNode(Node):
             try:
                 if action == 'enable' and not self.motion_allowed:
                     response.success = False
-                    response.message = 'the node is not active (lifecycle): activate it first'
+                    response.message = 'the node is not active (lifecycle): activate it ' \
+                        'first' if self.controller.serving_actions else NOT_SERVED
                     self.get_logger().warning(f'enable refused: {response.message}')
                     return response
                 return self._answer(action, (), response, fill)

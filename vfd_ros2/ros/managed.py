@@ -27,7 +27,7 @@ from __future__ import annotations
 import argparse
 import time
 from concurrent.futures import Future
-from typing import Callable, Iterable, Mapping
+from typing import Callable, Mapping
 
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.utilities import remove_ros_args
@@ -38,6 +38,11 @@ from ..control.state import ActionResult
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
 ERROR = TransitionCallbackReturn.ERROR
+
+#: ~/status's stop reason while the node is configured but not active
+NOT_ACTIVE = 'the node is not active (lifecycle): activate it to move the drive'
+#: ~/status's stop reason while it is unconfigured (cleanup, error processing)
+LINK_CLOSED = 'the link is closed (lifecycle: unconfigured): configure the node to connect'
 
 
 def parse_options(args: list[str] | None) -> argparse.Namespace:
@@ -97,14 +102,18 @@ class DriveTransitions:
         self._log(self.last_error)
         return code
 
-    def _allow(self, allowed: bool, names: Iterable[str] | None = None) -> None:
-        for name in names if names is not None else self._gates:
-            self._gates[name][1](allowed)
+    def _allow(self, allowed: bool) -> None:
+        for controller, allow in self._gates.values():
+            allow(allowed)
+            # The drive layer holds it too, and ~/status says why: ~/enable is refused
+            # until activate.
+            controller.intent.held = '' if allowed else NOT_ACTIVE
 
     def _close(self) -> None:
         self._stop_loop()            # the loop's end writes the stop, then closes the link
         for controller, _ in self._gates.values():
-            controller.mark_closed()  # ~/status says offline, not the last cycle's state
+            # ~/status says offline, and why, not the last cycle's state
+            controller.mark_closed(LINK_CLOSED)
 
     def configure(self) -> TransitionCallbackReturn:
         self._allow(False)

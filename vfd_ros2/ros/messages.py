@@ -134,8 +134,11 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
     status.name = name
     status.hardware_id = state.hardware_id
     if not state.online:
-        status.level = DiagnosticStatus.ERROR if ever_online else DiagnosticStatus.STALE
-        status.message = f'offline: {state.link_error or "no reply"}'
+        # A link the host closed on purpose (a managed node unconfigured) has no data
+        # to report; one that failed, before or after it was ever up, is a comm loss.
+        status.level = DiagnosticStatus.STALE if state.link_closed or not (
+            ever_online or state.link_error) else DiagnosticStatus.ERROR
+        status.message = f'offline: {state.link_closed or state.link_error or "no reply yet"}'
     elif state.fault:
         fault = state.active_fault
         status.level = DiagnosticStatus.ERROR
