@@ -244,3 +244,36 @@ def test_readme_config_paths_work_from_anywhere():
     relative = re.findall(r'(?:--params-file|config_file:=|params_file:=)\s*([^\s$<][^\s]*)',
                           readme)
     assert not relative, f'paths that depend on the working directory: {relative}'
+
+
+def test_a_mistyped_option_is_refused_not_taken_for_a_plain_node():
+    """--manged used to start a plain node, enabled at once where auto_enable is set."""
+    from vfd_ros2.errors import ParameterError
+    from vfd_ros2.ros.managed import parse_options
+    assert parse_options(['drive_node', '--managed', '--ros-args', '-p', 'x:=1']).managed
+    with pytest.raises(ParameterError, match='unknown argument.* --manged'):
+        parse_options(['drive_node', '--manged', '--ros-args', '-p', 'x:=1'])
+
+
+def test_a_params_file_that_does_not_parse_is_one_line_not_a_traceback(tmp_path, capsys):
+    from vfd_ros2.ros.drive_node import main
+    path = tmp_path / 'drive.yaml'
+    path.write_text('/**:\n\tros__parameters:\n    max_velocity: 1.0\n')       # a tab
+    assert main(['drive_node', '--ros-args', '--params-file', str(path)]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith('drive_node: cannot start (check --ros-args and --params-file)')
+    assert 'Traceback' not in out
+
+
+def test_loop_errors_are_logged_once_with_a_traceback_then_counted(caplog):
+    from vfd_ros2.control.loop import CycleLoop
+
+    def broken() -> None:
+        raise struct_error('argument out of range')
+    struct_error = type('error', (Exception,), {})
+    loop = CycleLoop('d', 0.02, broken, lambda: None)
+    with caplog.at_level('ERROR', logger='vfd_ros2.control.loop'):
+        for _ in range(170):
+            loop._guarded(broken)
+    assert loop.errors == 170
+    assert len(caplog.records) == 1 and caplog.records[0].exc_info is not None

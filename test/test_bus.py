@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 import uuid
@@ -482,3 +483,110 @@ def test_a_drive_entry_cannot_set_what_the_bus_thread_owns(key):
     with pytest.raises(ParameterError, match=f'drive d1: {key} belongs to the bus'):
         parse_bus_config({'bus': {'transport.type': 'modbus_rtu'},
                           'drives': {'d1': {key: 10}}})
+
+
+def test_bus_file_mistakes_are_named_before_anything_starts():
+    typo = bus_document('/dev/null', '/x')
+    typo['bus']['transport.prot'] = '/dev/ttyS1'          # the line's port misspelt
+    with pytest.raises(ParameterError, match="'transport.prot': modbus_rtu has no such"):
+        parse_bus_config(typo)
+    empty = bus_document('/dev/null', '/x')
+    empty['drives']['left'] = None
+    with pytest.raises(ParameterError, match='drive left: its settings must be a mapping'):
+        parse_bus_config(empty)
+    rate = bus_document('/dev/null', '/x')
+    rate['bus']['control_rate'] = 'fast'
+    with pytest.raises(ParameterError, match="control_rate: a number, not 'fast'"):
+        parse_bus_config(rate)
+
+
+def test_bus_file_that_is_not_yaml_is_a_clear_error(tmp_path):
+    from vfd_ros2.control.bus import load_bus_config
+    path = tmp_path / 'bus.yaml'
+    path.write_text('bus:\n\ttransport.port: /dev/ttyUSB0\n')       # a tab
+    with pytest.raises(ParameterError, match='is not valid YAML'):
+        load_bus_config(str(path))
+
+
+def test_drives_of_one_line_must_agree_on_its_factory_framing():
+    """Mixed families: the line ran at whichever drive's factory baud rate came first."""
+    document = bus_document('/dev/null', '/x')
+    document['drives']['right']['drive.profile'] = 'veichi_ehs100'   # factory 9600
+    with pytest.raises(ParameterError, match=r'drives left and right differ .*baudrate '
+                                             r'115200 against 9600.*transport\.baudrate'):
+        Bus(parse_bus_config(document))
+    document['bus']['transport.baudrate'] = 19200                   # the line's, for both
+    assert Bus(parse_bus_config(document)).transport.description.endswith('@19200-8N1')
+
+
+def bus_node_of(ros_context, tmp_path, document: dict, namespace: str = '/', **overrides):
+    """Return a managed bus_node of ``document`` (nothing opened before configure)."""
+    from vfd_ros2.ros.bus_node import ManagedBusNode
+    path = tmp_path / 'bus.yaml'
+    path.write_text(yaml.safe_dump(document))
+    try:
+        return ManagedBusNode(context=ros_context, namespace=namespace, parameter_overrides=[
+            Parameter('config_file', value=str(path)),
+            *(Parameter(k, value=v) for k, v in overrides.items())])
+    except ParameterError as exc:
+        refused = exc
+    # The refused node (its entities destroyed) is held by the traceback: collected
+    # here, it lets go of the context before the leak check.
+    message = str(refused)
+    del refused
+    gc.collect()
+    raise ParameterError(message)
+
+
+def test_bus_node_refuses_two_drives_in_one_namespace(ros_context, tmp_path):
+    """Both nodes would take the same ~/velocity_command: one command, two motors."""
+    document = bus_document('/dev/null', '/x')
+    document['drives']['right']['namespace'] = '/x/left'
+    with pytest.raises(ParameterError, match='drives left and right are both /x/left/drive'):
+        bus_node_of(ros_context, tmp_path, document)
+
+
+def test_bus_node_puts_drives_without_an_absolute_namespace_into_its_own(ros_context,
+                                                                         tmp_path):
+    robot = f'/r{uuid.uuid4().hex[:6]}'
+    document = bus_document('/dev/null', '/x')
+    document['drives']['left']['namespace'] = 'front/left'         # relative
+    del document['drives']['right']['namespace']                    # default: its key
+    node = bus_node_of(ros_context, tmp_path, document, namespace=robot)
+    try:
+        assert [n.get_fully_qualified_name() for n in node.drive_nodes] == [
+            f'{robot}/front/left/drive', f'{robot}/right/drive']
+    finally:
+        for each in (*node.drive_nodes, node):
+            each.destroy_node()
+
+
+def test_bus_node_refuses_drive_settings_that_would_reach_no_drive(ros_context, tmp_path):
+    """A params file's max_velocity for the bus node used to be dropped without a word."""
+    with pytest.raises(ParameterError, match='max_velocity, transport.parity given to '
+                                             'bus_node .* would reach no drive'):
+        bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
+                    max_velocity=1.0, **{'transport.parity': 'E'})
+
+
+def test_a_profile_without_a_map_for_the_transport_is_refused():
+    """cia402_velocity (CANopen only) on a serial line went out as reads of no register map."""
+    from vfd_ros2.control.factory import build_controller
+    with pytest.raises(ParameterError, match='profile cia402_velocity is for canopen, not '
+                                             'modbus_rtu'):
+        build_controller({'drive.profile': 'cia402_velocity', 'transport.port': '/dev/null'})
+    document = bus_document('/dev/null', '/x')
+    document['drives']['left']['drive.profile'] = 'cia402_velocity'
+    with pytest.raises(ParameterError, match='is for canopen, not modbus_rtu'):
+        Bus(parse_bus_config(document))
+
+
+@pytest.mark.parametrize('settings, why', [
+    ({'transport.parity': 'X'}, 'N, E or O'),
+    ({'transport.parity': 'even'}, 'N, E or O'),
+    ({'transport.unit_id': 0}, 'unit id 0 is the broadcast address'),
+])
+def test_serial_link_settings_no_drive_can_use_are_refused(settings, why):
+    from vfd_ros2.control.factory import build_controller
+    with pytest.raises(ParameterError, match=why):
+        build_controller({'transport.port': '/dev/null', **settings})

@@ -460,3 +460,25 @@ def test_status_comes_at_its_rate_with_its_own_stamp_between_slow_cycles(make_ha
     joint_stamps = [j.header.stamp.sec + 1e-9 * j.header.stamp.nanosec for j in joints]
     assert len(joint_stamps) >= 10 and all(b > a for a, b in zip(joint_stamps,
                                                                   joint_stamps[1:]))
+
+
+def test_a_run_withdrawn_at_once_is_not_an_unexpected_start(make_harness):
+    """A command_timeout shorter than the command period: run, then idle a cycle later.
+
+    The drive shows the run it was given one cycle late, while the host has it idle
+    again: that start was the host's own, not one from elsewhere.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'command_timeout': 0.01})
+    h.stream(1.0, period=0.05)
+    wait_for(lambda: h.sim.run_requested, 5.0, 'a pulse of run')
+    h.wait_cycles(100)
+    h.stop_stream()
+    status = h.wait_status(lambda s: True, 1.0)
+    assert status.unexpected_starts == 0, status.unexpected_starts
+
+
+def test_misspelt_parameters_are_named_not_dropped_in_silence(make_harness):
+    from vfd_ros2.ros.parameters import unknown_overrides
+    h = make_harness(node_parameters={'comand_timeout': 0.1})
+    assert unknown_overrides(h.node) == ['comand_timeout']
+    assert h.node.get_parameter('command_timeout').value == 0.5      # not taken for it

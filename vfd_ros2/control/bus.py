@@ -22,7 +22,7 @@ from ..errors import ParameterError, TransportError
 from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
 from .controller import DriveController
-from .factory import build_controller, build_transport
+from .factory import build_controller, build_transport, link_settings
 from .loop import CycleLoop
 from .settings import SETTINGS
 
@@ -64,21 +64,34 @@ class BusConfig:
 
 def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
     """Validate a bus YAML document (see config/sim_agv_bus.yaml)."""
-    if not isinstance(data, Mapping) or 'bus' not in data or 'drives' not in data:
+    if not isinstance(data, Mapping) or not isinstance(data.get('bus'), Mapping) or \
+            'drives' not in data:
         raise ParameterError('a bus file needs a "bus" mapping and a "drives" mapping')
     bus = dict(data['bus'])
     name = str(bus.pop('name', 'bus'))
     known = {s.name for s in SETTINGS}
-    for key in bus:
+    transport_type = str(bus.get('transport.type', 'modbus_rtu'))
+    link_keys = {'transport.type'} | {f'transport.{p.name}' for p in
+                                      load_transport_class(transport_type).parameters}
+    for key, value in bus.items():
         if not (key.startswith('transport.') or key in BUS_KEYS):
             raise ParameterError(f'bus setting {key!r}: only transport.* and {BUS_KEYS}')
+        if key.startswith('transport.') and key not in link_keys:
+            raise ParameterError(f'bus setting {key!r}: {transport_type} has no such setting '
+                                 f'(it has {", ".join(sorted(link_keys))})')
+        if key in BUS_KEYS and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise ParameterError(f'bus setting {key}: a number, not {value!r}')
     if not isinstance(data['drives'], Mapping) or not data['drives']:
         raise ParameterError('"drives" must map a name to each drive\'s settings')
     drives = []
     unit_ids = set()
     for key, entry in data['drives'].items():
+        if not isinstance(entry, Mapping):
+            raise ParameterError(f'drive {key}: its settings must be a mapping (at least '
+                                 f'transport.unit_id), not {entry!r}')
         settings = dict(entry)
-        namespace = str(settings.pop('namespace', f'/{key}'))
+        # Relative (the default: the drive's key) resolves in the bus node's namespace.
+        namespace = str(settings.pop('namespace', key))
         node_name = str(settings.pop('name', 'drive'))
         for setting in settings:
             if (setting.startswith('transport.') and setting != 'transport.unit_id') or \
@@ -98,8 +111,10 @@ def load_bus_config(path: str) -> BusConfig:
     try:
         with open(path, encoding='utf-8') as stream:
             return parse_bus_config(yaml.safe_load(stream))
-    except OSError as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise ParameterError(f'cannot read bus file {path}: {exc}') from exc
+    except yaml.YAMLError as exc:
+        raise ParameterError(f'bus file {path} is not valid YAML: {exc}') from exc
 
 
 class Bus:
@@ -116,6 +131,7 @@ class Bus:
         self._clock = clock
         self.controllers: dict[str, DriveController] = {}
         first_values = {**config.settings, **config.drives[0].settings}
+        self._check_one_link(config)
         shared = load_shared(first_values)
         self.transport: Transport = build_transport(first_values)
         for entry in config.drives:
@@ -150,6 +166,28 @@ class Bus:
         # value errs towards checking too early).
         self._command_waiting = False
         self._watchdog_check_at = 0.0
+
+    @staticmethod
+    def _check_one_link(config: BusConfig) -> None:
+        """Refuse drives whose factory link settings (baud rate, framing) differ.
+
+        The bus section's ``transport.*`` left at 0/'' means the drive's factory
+        value; on one line every drive must have the same, or the line would run at
+        whichever drive is listed first.
+        """
+        links = {entry.key: link_settings({**config.settings, **entry.settings})
+                 for entry in config.drives}
+        first = config.drives[0].key
+        for key, link in links.items():
+            differ = sorted(name for name in link.keys() | links[first].keys()
+                            if name != 'unit_id' and link.get(name) != links[first].get(name))
+            if differ:
+                raise ParameterError(
+                    f'drives {first} and {key} differ in their factory link settings ('
+                    + ', '.join(f'{name} {links[first].get(name)} against {link.get(name)}'
+                                for name in differ)
+                    + '): set ' + ', '.join(f'transport.{name}' for name in differ)
+                    + ' in the bus section, and the drives to match')
 
     def _addressing_interval(self) -> float:
         """Worst-case time between two requests to any drive of this bus.

@@ -152,6 +152,7 @@ class DriveController:
         self._cycle_ok = False
         self._command_pending = False
         self._run_written = False        # what the last command write asked: run or idle
+        self._run_asked_at = -math.inf   # when a command write last asked it to run
         self._preempted_deadline: float | None = None   # watchdog expiry already acted on
         self._last_running = False
         self._not_running_since: float | None = None  # told to run, not running since
@@ -551,6 +552,8 @@ class DriveController:
             raise
         self._command_refused = ''
         self._run_written = run
+        if run:
+            self._run_asked_at = self._clock()
 
     def _write_setpoints(self) -> None:
         with self._lock:
@@ -648,7 +651,10 @@ class DriveController:
             # Whatever was written last, the drive runs although the host has it
             # idle (a start from elsewhere, or a lost stop): write the idle command again.
             self.services.reassert_idle = True
-            if not self._last_running:
+            # A run asked for a cycle ago may show only now (withdrawn at once by a short
+            # command_timeout, say): that start was the host's own.
+            if not self._last_running and \
+                    self._clock() - self._run_asked_at > 2 * self.addressing_interval():
                 self._unexpected_starts += 1
                 log.warning('%s reports running although the host has it %s: idle command '
                             'written again', self.drive.hardware_id,

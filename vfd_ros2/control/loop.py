@@ -12,6 +12,9 @@ from ..protocol.linux_thread import name_os_thread
 
 log = logging.getLogger(__name__)
 
+#: s between two log lines of the same repeating loop error
+LOOP_ERROR_LOG_PERIOD = 10.0
+
 
 class CycleLoop:
     """Calls ``step`` every ``period`` seconds in its own thread, then ``finish``.
@@ -50,6 +53,7 @@ class CycleLoop:
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
         self.errors = 0
+        self._error_kinds: dict[str, list] = {}    # error text -> [last logged, repeats since]
 
     def start(self) -> None:
         self._thread.start()
@@ -91,7 +95,20 @@ class CycleLoop:
             call()
         except Exception as exc:  # noqa: BLE001 - the loop must survive anything
             self.errors += 1
-            log.exception('%s: loop error: %s', self.name, exc)
+            # Each kind of error with its traceback once; a repeat (every cycle, say)
+            # as one line at most every LOOP_ERROR_LOG_PERIOD, with its count.
+            kind = f'{type(exc).__name__}: {exc}'
+            now = time.monotonic()
+            seen = self._error_kinds.get(kind)
+            if seen is None:
+                self._error_kinds[kind] = [now, 0]
+                log.exception('%s: loop error: %s', self.name, exc)
+            elif now - seen[0] >= LOOP_ERROR_LOG_PERIOD:
+                log.error('%s: loop error again (%d more times): %s', self.name, seen[1] + 1,
+                          kind)
+                seen[:] = [now, 0]
+            else:
+                seen[1] += 1
 
     def _run(self) -> None:
         name_os_thread(f'vfd {self.name}')

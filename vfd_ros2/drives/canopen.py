@@ -109,6 +109,9 @@ def decode_fault(faulted: bool, code: int, emcy: FaultInfo, faults: FaultSpec,
 class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
     """One drive on a CANopen transport, driven through its profile."""
 
+    #: a profile's ``transports`` entries this class can drive (its ``canopen`` section)
+    profile_transports: ClassVar[tuple[str, ...]] = ('canopen',)
+
     settings: ClassVar[tuple[TransportParameter, ...]] = (
         TransportParameter('object_set', '', "CANopen object set of the profile (Kinco: "
                            "manufacturer | ds402); '' = the profile's choice"),

@@ -78,6 +78,9 @@ def unpack(value_type: ValueType, data: bytes) -> int:
 class EthercatDrive(DriveOnLink, ObjectDictionaryParameters):
     """One CiA 402 drive on an EtherCAT segment, driven through its profile."""
 
+    #: a profile's ``transports`` entries this class can drive (its ``ethercat`` section)
+    profile_transports: ClassVar[tuple[str, ...]] = ('ethercat',)
+
     settings: ClassVar[tuple[TransportParameter, ...]] = (
         TransportParameter('velocity_scale', 0.0, "rpm per count of the target/actual velocity "
                            "objects; 0 = the profile's"),

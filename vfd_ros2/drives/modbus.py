@@ -49,6 +49,8 @@ class ModbusDrive(DriveOnLink):
     """One drive on a register transport, driven through its profile."""
 
     settings: ClassVar[tuple[TransportParameter, ...]] = ()
+    #: a profile's ``transports`` entries this class can drive (its register map)
+    profile_transports: ClassVar[tuple[str, ...]] = ('modbus_rtu', 'modbus_tcp')
 
     @classmethod
     def link_settings(cls, profile: Profile, settings: Mapping[str, Any]) -> dict[str, Any]:
@@ -66,6 +68,10 @@ class ModbusDrive(DriveOnLink):
                  owns_transport: bool = True) -> None:
         if not 0 <= unit_id <= 247:
             raise ParameterError(f'unit id {unit_id} is outside 0..247')
+        if unit_id == 0 and getattr(transport, 'broadcasts', False):
+            raise ParameterError('unit id 0 is the broadcast address on a serial line: every '
+                                 'drive executes its writes and none answers; give the drive '
+                                 'its own address (1..247)')
         self.profile = profile
         self.transport = transport
         self.owns_transport = owns_transport

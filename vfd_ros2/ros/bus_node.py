@@ -27,12 +27,13 @@ from rclpy.parameter import Parameter
 
 from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
 from ..control.settings import SETTINGS
+from ..errors import ParameterError
 from .drive_node import DriveNode, autostart
-from .executable import run_node
+from .executable import CONFIGURATION_ERRORS, run_node
 from .joint_topics import JointCommandBridge
 from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import bus_diagnostic_name
-from .parameters import LiveParameters, check_value, descriptor
+from .parameters import LiveParameters, check_value, descriptor, unknown_overrides
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
@@ -58,56 +59,96 @@ class BusNode(Node):
     def __init__(self, node_name: str = 'bus', managed: bool = False, **kwargs: Any) -> None:
         """Serve one link and a drive node per drive; ``managed``: see ``ManagedBusNode``."""
         super().__init__(node_name, **kwargs)
-        path = self.declare_parameter('config_file', '', ParameterDescriptor(
-            description='bus YAML: the link and its drives', read_only=True)).value
-        self.config = load_bus_config(path)
-        self.bus = Bus(self.config)
-        # The bus thread's rate is the bus node's (live); the drives' nodes show it read-only.
-        rates = {s.name: s for s in SETTINGS if s.name in BUS_KEYS}
-        rate = rates['control_rate']
-        configured = float(self.config.settings.get('control_rate', rate.default))
-        value = self.declare_parameter('control_rate', configured, descriptor(
-            rate.description, rate.default, rate.minimum, rate.maximum, live=True)).value
-        check_value('control_rate', value, rate.minimum, rate.maximum)
-        if value != configured:
-            self.bus.set_rate(float(value))
-        priority = rates['realtime_priority']
-        self.declare_parameter(
-            'realtime_priority', int(self.config.settings.get('realtime_priority', 0)),
-            descriptor(priority.description + ' (set it in the bus file)', priority.default,
-                       priority.minimum, priority.maximum))
-        # Declared before the live-parameter check is installed (it refuses the rest).
-        joint_topics = {name: self.declare_parameter(name, default, ParameterDescriptor(
-            description=description, read_only=True)).value for name, default, description in (
-            ('joint_commands_topic', '', 'sensor_msgs/JointState velocity commands in, by '
-             "joint name (topic_based_ros2_control's joint_commands_topic); '' = none"),
-            ('joint_states_topic', '', "the drives' joint states out, together "
-             "(topic_based_ros2_control's joint_states_topic); '' = none"),
-            ('joint_states_rate', 50.0, 'Hz of joint_states_topic'))}
-        self.live_parameters = LiveParameters(
-            self, {'control_rate'}, self._apply_parameters,
-            {'control_rate': (rate.minimum, rate.maximum)})
         self.drive_nodes: list[DriveNode] = []
-        for entry in self.config.drives:
-            values = {**self.config.settings, **entry.settings}
-            # use_global_arguments=False: a launch file's __ns/__node remaps are meant
-            # for the bus node, not for the drives' own namespaces from the bus file.
-            values['control_rate'] = 1.0 / self.bus.period
-            self.drive_nodes.append(DriveNode(
-                entry.name, controller=self.bus.controllers[entry.key], managed=managed,
-                own_timers=False, on_rate_change=self._schedule_publishing,
-                namespace=entry.namespace, context=self.context, use_global_arguments=False,
-                parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
-        self.joints = JointCommandBridge(
-            self, self.drive_nodes, str(joint_topics['joint_commands_topic']),
-            str(joint_topics['joint_states_topic']), float(joint_topics['joint_states_rate']))
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self._publish_timers: list = []
-        self._schedule_publishing()
-        if not managed:
-            self.bus.start()
-        self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
-                               f'{self.bus.transport.description}')
+        try:
+            path = self.declare_parameter('config_file', '', ParameterDescriptor(
+                description='bus YAML: the link and its drives', read_only=True)).value
+            self.config = load_bus_config(path)
+            self.bus = Bus(self.config)
+            # The bus thread's rate is the bus node's (live); the drives' nodes show it read-only.
+            rates = {s.name: s for s in SETTINGS if s.name in BUS_KEYS}
+            rate = rates['control_rate']
+            configured = float(self.config.settings.get('control_rate', rate.default))
+            value = self.declare_parameter('control_rate', configured, descriptor(
+                rate.description, rate.default, rate.minimum, rate.maximum, live=True)).value
+            check_value('control_rate', value, rate.minimum, rate.maximum)
+            if value != configured:
+                self.bus.set_rate(float(value))
+            priority = rates['realtime_priority']
+            self.declare_parameter(
+                'realtime_priority', int(self.config.settings.get('realtime_priority', 0)),
+                descriptor(priority.description + ' (set it in the bus file)', priority.default,
+                           priority.minimum, priority.maximum))
+            # Declared before the live-parameter check is installed (it refuses the rest).
+            joint_topics = {name: self.declare_parameter(name, default, ParameterDescriptor(
+                description=description, read_only=True)).value for name, default, description in (
+                ('joint_commands_topic', '', 'sensor_msgs/JointState velocity commands in, by '
+                 "joint name (topic_based_ros2_control's joint_commands_topic); '' = none"),
+                ('joint_states_topic', '', "the drives' joint states out, together "
+                 "(topic_based_ros2_control's joint_states_topic); '' = none"),
+                ('joint_states_rate', 50.0, 'Hz of joint_states_topic'))}
+            self._refuse_drive_settings_given_here()
+            self.live_parameters = LiveParameters(
+                self, {'control_rate'}, self._apply_parameters,
+                {'control_rate': (rate.minimum, rate.maximum)})
+            names: dict[str, str] = {}
+            for entry in self.config.drives:
+                values = {**self.config.settings, **entry.settings}
+                values['control_rate'] = 1.0 / self.bus.period
+                namespace = entry.namespace if entry.namespace.startswith('/') else \
+                    f'{self.get_namespace().rstrip("/")}/{entry.namespace}'
+                name = f'{namespace.rstrip("/")}/{entry.name}'
+                if name in names:
+                    # one velocity command topic would move both motors
+                    raise ParameterError(f'drives {names[name]} and {entry.key} are both {name}: '
+                                         'give each drive its own namespace')
+                names[name] = entry.key
+                try:
+                    # use_global_arguments=False: a launch file's __ns/__node remaps are meant
+                    # for the bus node, not for the drives' nodes (the bus file names them).
+                    self.drive_nodes.append(DriveNode(
+                        entry.name, controller=self.bus.controllers[entry.key], managed=managed,
+                        own_timers=False, on_rate_change=self._schedule_publishing,
+                        namespace=namespace, context=self.context, use_global_arguments=False,
+                        parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
+                except CONFIGURATION_ERRORS as exc:
+                    raise ParameterError(f'drive {entry.key}: {exc}') from exc
+            self.joints = JointCommandBridge(
+                self, self.drive_nodes, str(joint_topics['joint_commands_topic']),
+                str(joint_topics['joint_states_topic']), float(joint_topics['joint_states_rate']))
+            self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+            self._publish_timers: list = []
+            self._schedule_publishing()
+            if not managed:
+                self.bus.start()
+            self.get_logger().info(f'bus {self.config.name}: {len(self.drive_nodes)} drives on '
+                                   f'{self.bus.transport.description}')
+        except BaseException:
+            # Refused (a bus file mistake): what was made so far goes, port unopened.
+            for node in self.drive_nodes:
+                node.destroy_node()
+            super().destroy_node()
+            raise
+
+    def _refuse_drive_settings_given_here(self) -> None:
+        """Refuse drive settings given to the bus node (params file, -p): they reach no drive.
+
+        The drives' nodes take their settings from the bus file only, so a
+        ``max_velocity`` or ``command_timeout`` meant for them would be dropped
+        without a word; anything else unknown is only reported.
+        """
+        unknown = unknown_overrides(self)
+        drive_settings = {s.name for s in SETTINGS}
+        misplaced = [name for name in unknown if name in drive_settings or
+                     name.startswith(('transport.', 'drive.'))]
+        if misplaced:
+            raise ParameterError(
+                f'{", ".join(misplaced)} given to bus_node (params file or -p) would reach no '
+                f'drive: set them per drive, or for the line, in the bus file '
+                f'({self.get_parameter("config_file").value})')
+        if unknown:
+            self.get_logger().error(f'parameters given but not known to bus_node, not applied '
+                                    f'(misspelt?): {", ".join(unknown)}')
 
     def _schedule_publishing(self) -> None:
         """One timer per distinct rate serves every drive (again after a rate changed).

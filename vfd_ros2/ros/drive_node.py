@@ -60,7 +60,7 @@ from .messages import (
     joint_state_message,
     status_message,
 )
-from .parameters import LiveParameters, check_value, descriptor
+from .parameters import LiveParameters, check_value, descriptor, unknown_overrides
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -153,6 +153,10 @@ class DriveNode(Node):
             self.controller.intent.enabled = False       # enabled at activate, per policy
         elif self._owns_controller:
             self.controller.start()
+        if unknown := unknown_overrides(self):
+            self.get_logger().error(
+                f'parameters given but not known to drive_node, not applied (misspelt?): '
+                f'{", ".join(unknown)}')
         self.get_logger().info(
             f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
 

@@ -19,14 +19,15 @@ from typing import Callable, Iterable
 
 import rclpy
 from rclpy.context import Context
-from rclpy.exceptions import ParameterException
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 
 from ..errors import VfdError
 
 #: start-up errors reported in one line (bad configuration), not as a traceback
-CONFIGURATION_ERRORS = (VfdError, ParameterException, ValueError)
+CONFIGURATION_ERRORS = (VfdError, ParameterException, NameValidationException, ValueError)
 
 
 def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = None,
@@ -40,7 +41,11 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     # lets go: after the switch interval (5 ms by default) when the executor is busy
     # with callbacks. That wait went into every transaction of a 32-drive bus.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except _rclpy.RCLError as exc:      # e.g. a --params-file that does not parse
+        print(f'{name}: cannot start (check --ros-args and --params-file): {exc}')
+        return 1
     node = executor = None
     try:
         node = make_node()

@@ -34,6 +34,7 @@ from rclpy.utilities import remove_ros_args
 
 from ..control.controller import DriveController
 from ..control.state import ActionResult
+from ..errors import ParameterError
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
@@ -46,14 +47,21 @@ LINK_CLOSED = 'the link is closed (lifecycle: unconfigured): configure the node 
 
 
 def parse_options(args: list[str] | None) -> argparse.Namespace:
-    """Return --managed / --autostart from the command line (ROS arguments removed)."""
+    """Return --managed / --autostart from the command line (ROS arguments removed).
+
+    Anything else is refused (ParameterError): a mistyped ``--managed`` must not
+    start a plain node, enabled at once where ``auto_enable`` is set.
+    """
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument('--managed', action='store_true',
                         help='run as a managed (lifecycle) node')
     parser.add_argument('--autostart', action='store_true',
                         help='with --managed: configure and activate at start')
-    options, _ = parser.parse_known_args(remove_ros_args(args)[1:] if args is not None
-                                         else remove_ros_args()[1:])
+    options, unknown = parser.parse_known_args(remove_ros_args(args)[1:] if args is not None
+                                               else remove_ros_args()[1:])
+    if unknown:
+        raise ParameterError(f'unknown argument(s) {" ".join(unknown)}: the options are '
+                             '--managed and --autostart; ROS arguments go after --ros-args')
     return options
 
 

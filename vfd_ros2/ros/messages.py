@@ -148,8 +148,9 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         status.message = '; '.join(warnings)
     else:
         status.level = DiagnosticStatus.OK
-        status.message = state.state if not state.stop_reason else \
-            f'{state.state}: {state.stop_reason}'
+        reason = state.stop_reason
+        status.message = reason if reason.startswith(state.state) else \
+            f'{state.state}: {reason}' if reason else state.state
     fault = state.active_fault
     pairs = [
         ('state', state.state),

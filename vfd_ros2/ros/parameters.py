@@ -57,6 +57,16 @@ def check_value(name: str, value: Any, minimum: float | None = None,
         raise ValueError(f'{name} must be <= {maximum:g}, got {value:g}')
 
 
+def unknown_overrides(node: Node) -> list[str]:
+    """Return the parameters given to ``node`` (params file, -p) that it never declared.
+
+    rclpy drops them silently; a misspelt ``comand_timeout`` would leave the
+    watchdog at its default without a word. (rclpy keeps the overrides in
+    ``Node._parameter_overrides``: there is no public accessor.)
+    """
+    return sorted(set(node._parameter_overrides) - set(node._parameters))
+
+
 class LiveParameters:
     """The set-parameters callback of a node: validate everything, then apply, or refuse.
 

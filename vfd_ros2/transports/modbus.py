@@ -275,6 +275,9 @@ class _RtuSettings:
         if not baudrate or not parity or not stopbits:
             raise ParameterError(f'{cls.__name__}: baudrate, parity and stopbits must be set '
                                  '(the drive layer fills in the factory values for 0 / "")')
+        if parity not in ('N', 'E', 'O'):
+            raise ParameterError(f'transport.parity {parity!r}: N, E or O (empty = the '
+                                 "drive's factory setting)")
         return cls(port=str(settings['port']), baudrate=baudrate, parity=parity,
                    stopbits=stopbits, bytesize=int(settings.get('bytesize', 8)),
                    timeout=float(settings['timeout']),
