@@ -17,15 +17,18 @@ from typing import Any
 import pytest
 from geometry_msgs.msg import Twist, TwistStamped
 from nav_msgs.msg import Odometry
+from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 
 from harness import wait_for
 from vfd_ros2.control.diff_drive import (
+    START_VARIANCE,
     UNKNOWN_VARIANCE,
     DiffDriveKinematics,
     OdometryIntegrator,
@@ -201,9 +204,11 @@ def test_odometry_arc_matches_geometry():
 
 def test_odometry_hold_and_covariance():
     odom = OdometryIntegrator(DiffDriveKinematics(R, TRACK), position_variance_per_m=0.01)
+    at_start = odom.estimate.pose_covariance      # not zero: no filter takes it as perfect
+    assert at_start[0] == at_start[7] == at_start[35] == START_VARIANCE > 0.0
     odom.update(10.0, 10.0, 1.0)
     moving = odom.estimate
-    assert moving.pose_covariance[0] == pytest.approx(0.01)      # 1 m travelled
+    assert moving.pose_covariance[0] == pytest.approx(START_VARIANCE + 0.01)   # 1 m
     assert moving.pose_covariance[14] == UNKNOWN_VARIANCE        # z
     assert moving.twist_covariance[0] < 1.0 and moving.twist_valid
     odom.hold()
@@ -213,7 +218,7 @@ def test_odometry_hold_and_covariance():
     assert held.twist_covariance[0] == UNKNOWN_VARIANCE
     assert held.twist_covariance[35] == UNKNOWN_VARIANCE
     odom.update(10.0, 10.0, 1.0)
-    assert odom.estimate.pose_covariance[0] == pytest.approx(0.02)
+    assert odom.estimate.pose_covariance[0] == pytest.approx(START_VARIANCE + 0.02)
     assert len(odom.estimate.pose_covariance) == 36
 
 
@@ -424,6 +429,10 @@ def test_nan_and_inf_cmd_vel_rejected_and_do_not_feed_timeout(make_rig):
     before = rig.node.rejected_commands
     rig.twist = (0.2, math.inf)
     wait_for(lambda: rig.node.rejected_commands > before + 3, 2.0, 'inf rejected')
+    assert rig.left.commands[-1] == 0.0 and rig.right.commands[-1] == 0.0
+    before = rig.node.rejected_commands
+    rig.twist = (1e308, 1e308)              # finite, but its wheel speeds overflow
+    wait_for(lambda: rig.node.rejected_commands > before + 3, 2.0, 'overflow rejected')
     assert rig.left.commands[-1] == 0.0 and rig.right.commands[-1] == 0.0
     rig.twist = (0.2, 0.0)                                    # valid again: moves again
     rig.wait_commands(2.0, 2.0)
@@ -664,3 +673,54 @@ def test_a_wheel_that_does_not_follow_stops_the_other_too(make_rig, trouble):
     rig.right.online, rig.right.fault, rig.right.state = True, False, 'running'
     rig.right.publishing = True
     rig.wait_commands(4.0, 6.0, what='the arc again once both follow')
+
+
+def test_wheel_positions_measured_apart_are_paired_at_one_moment(make_rig):
+    """A bus reads the two wheels a cycle apart; each JointState carries its own moment.
+
+    Straight ahead at 3 rad/s, one wheel measured 20 ms after the other, which one
+    alternating: taken as they come, the pair said the robot turned 0.012 rad one
+    way and back again every message (a yaw-rate spike of ~0.3 rad/s each time).
+    """
+    rig = make_rig()
+    rig.set_measured(3.0, 3.0)
+    publishers = {'left': rig.left.joint_pub, 'right': rig.right.joint_pub}
+    start = rig.tester.get_clock().now()
+    yaws = []
+    for step in range(40):
+        now = rig.tester.get_clock().now()
+        late = 'left' if step % 2 else 'right'
+        for wheel, publisher in publishers.items():
+            measured = now - Duration(nanoseconds=20_000_000 if wheel == late else 0)
+            joint = JointState(name=[wheel], velocity=[3.0], position=[
+                3.0 * (measured - start).nanoseconds * 1e-9])
+            joint.header.stamp = measured.to_msg()
+            publisher.publish(joint)
+        time.sleep(0.03)
+        if rig.node.odometry_source == 'position' and rig.odom:
+            yaws.append(2 * math.asin(rig.odom[-1].pose.pose.orientation.z))
+    assert len(yaws) > 20, 'position feedback in use'
+    assert max(abs(yaw) for yaw in yaws) < 0.002, max(abs(yaw) for yaw in yaws)
+
+
+def test_odometry_counts_the_whole_of_a_late_cycle(make_rig):
+    """The executor stalls 0.4 s: the wheels went on meanwhile, and so must the pose.
+
+    Only the command limiter's step is capped (5 periods); the pose integrated the
+    capped step too and lost three quarters of the distance.
+    """
+    rig = make_rig(position_feedback=False)
+    rig.set_measured(3.0, 3.0)                                  # 0.3 m/s straight ahead
+    wait_for(lambda: rig.odom and rig.odom[-1].twist.twist.linear.x > 0.29, 3.0, 'moving')
+    first = rig.odom[-1]
+
+    def stall() -> None:
+        timer.cancel()
+        time.sleep(0.4)
+    timer = rig.tester.create_timer(0.01, stall)             # same executor as diff_drive
+    time.sleep(0.8)
+    last = rig.odom[-1]
+    elapsed = (Time.from_msg(last.header.stamp) - Time.from_msg(first.header.stamp)
+               ).nanoseconds * 1e-9
+    travelled = last.pose.pose.position.x - first.pose.pose.position.x
+    assert travelled == pytest.approx(0.3 * elapsed, rel=0.1), (travelled, elapsed)

@@ -442,8 +442,10 @@ def test_corrupted_replies_are_counted_and_survived(make_harness):
 
 
 def test_status_comes_at_its_rate_with_its_own_stamp_between_slow_cycles(make_harness):
-    # A drive polled at 2 Hz (a long bus cycle) with ~/status at 50 Hz: every message has
-    # a stamp of its own, and the values change only after the next poll.
+    # A drive polled at 2 Hz (a long bus cycle) with ~/status at 50 Hz: every status has
+    # a stamp of its own, and the values change only after the next poll. joint_states
+    # comes once per poll, stamped when measured (never one stamp twice: robot_state_
+    # publisher's TF listeners call that TF_REPEATED_DATA).
     h = make_harness(node_parameters={'control_rate': 2.0, 'command_timeout': 2.0})
     joints: list[JointState] = []
     h.tester.create_subscription(JointState, 'joint_states', joints.append, 50)
@@ -458,8 +460,10 @@ def test_status_comes_at_its_rate_with_its_own_stamp_between_slow_cycles(make_ha
     assert len(statuses) >= 4 * len(polls)        # several messages between two polls
     assert max(s.transactions for s in statuses) > statuses[0].transactions
     joint_stamps = [j.header.stamp.sec + 1e-9 * j.header.stamp.nanosec for j in joints]
-    assert len(joint_stamps) >= 10 and all(b > a for a, b in zip(joint_stamps,
-                                                                  joint_stamps[1:]))
+    assert len(joint_stamps) >= 2 and all(b > a for a, b in zip(joint_stamps,
+                                                                 joint_stamps[1:]))
+    gaps = [b - a for a, b in zip(joint_stamps, joint_stamps[1:])]
+    assert min(gaps) > 0.3, gaps                   # one per 0.5 s poll, not at 50 Hz
 
 
 def test_a_run_withdrawn_at_once_is_not_an_unexpected_start(make_harness):

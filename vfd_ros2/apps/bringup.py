@@ -184,5 +184,6 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             'right_wheel_status_topic': f'/agv/{wheels[1]}/drive/status',
             'left_wheel_joint_states_topic': f'/agv/{wheels[0]}/joint_states',
             'right_wheel_joint_states_topic': f'/agv/{wheels[1]}/joint_states',
-            'use_stamped_vel': True, 'max_wheel_velocity': 5.0}),
+            'use_stamped_vel': True, 'max_wheel_velocity': 5.0,
+            'max_linear_velocity': 5.0 * wheel_radius}),        # what the wheels can do
     ]

@@ -484,6 +484,10 @@ class DriveController:
         self.link.closed()
         self._actions.close('the control loop ended before this action ran')
 
+    def age_of(self, state: DriveState) -> float:
+        """Return s since ``state`` was taken (NaN for one built before any cycle)."""
+        return self._clock() - state.read_at
+
     @property
     def serving_actions(self) -> bool:
         """Whether a loop (its own or a bus's) serves service actions now."""
@@ -710,7 +714,8 @@ class DriveController:
         flags = reading.flags
         measured = reading.measured_velocity
         joint = self.joint
-        joint.update(reading, self._clock(), self.link.online)
+        read_at = self._clock()
+        joint.update(reading, read_at, self.link.online)
         running = flags.get('running', False)
         at_speed = flags.get('at_speed', running and math.isfinite(measured) and
                              abs(measured - commanded) <= self.config.at_speed_tolerance)
@@ -756,6 +761,7 @@ class DriveController:
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused
             + ((self._command_refused,) if self._command_refused else ()),
             link_notes=self.drive.transport.link_notes + self.loop_notes,
+            read_at=read_at,
         )
         with self._lock:
             self._state = snapshot

@@ -17,6 +17,9 @@ from ..errors import ParameterError
 #: twist while a wheel status is stale or offline). Large, not infinite: many
 #: consumers (robot_localization) refuse inf/NaN covariances.
 UNKNOWN_VARIANCE = 1.0e6
+#: The pose's variance before any travel (m², rad²): not zero, which would claim a
+#: perfect pose to a filter fusing it.
+START_VARIANCE = 1.0e-6
 
 
 def _positive(name: str, value: float) -> float:
@@ -261,8 +264,8 @@ class OdometryIntegrator:
 
     @property
     def estimate(self) -> OdometryEstimate:
-        position_variance = self.position_variance_per_m * self.distance_m
-        yaw_variance = self.yaw_variance_per_rad * self.rotation_rad
+        position_variance = START_VARIANCE + self.position_variance_per_m * self.distance_m
+        yaw_variance = START_VARIANCE + self.yaw_variance_per_rad * self.rotation_rad
         pose = _diagonal((position_variance, position_variance, UNKNOWN_VARIANCE,
                           UNKNOWN_VARIANCE, UNKNOWN_VARIANCE, yaw_variance))
         if self.twist_valid:

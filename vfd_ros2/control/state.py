@@ -92,6 +92,7 @@ class DriveState(NamedTuple):
     protection: HostLossProtection = HostLossProtection()
     unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
     link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)
+    read_at: float = math.nan       # the controller's clock when it was taken (after a poll)
 
     @property
     def state(self) -> str:

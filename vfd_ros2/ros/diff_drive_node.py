@@ -170,19 +170,36 @@ class WheelInput:
 
 
 class WheelPosition:
-    """The latest position of one wheel from its JointState, and when it arrived."""
+    """The latest position of one wheel from its JointState: when measured, when arrived."""
 
     def __init__(self, sign: float) -> None:
         self.sign = sign
         self.position_rad = math.nan
+        self.velocity_rad_s = math.nan     # at the same moment (NaN: not given)
+        self.measured: Time | None = None  # its header stamp (None: zero, not known)
         self.received: Time | None = None
         self.updates = 0        # positions received so far
 
     def update(self, msg: JointState, now: Time) -> None:
         if msg.position:
             self.position_rad = self.sign * float(msg.position[0])
+            self.velocity_rad_s = self.sign * float(msg.velocity[0]) if msg.velocity \
+                else math.nan
+            stamp = Time.from_msg(msg.header.stamp, clock_type=now.clock_type)
+            self.measured = stamp if stamp.nanoseconds else None
             self.received = now
             self.updates += 1
+
+    def at(self, moment: Time, limit_s: float) -> float:
+        """Return the position at ``moment``: carried on at the measured speed.
+
+        From when it was measured, for at most ``limit_s``; as measured when either
+        the moment or the speed is not known.
+        """
+        if self.measured is None or not math.isfinite(self.velocity_rad_s):
+            return self.position_rad
+        ahead = (moment - self.measured).nanoseconds * 1e-9
+        return self.position_rad + self.velocity_rad_s * min(max(ahead, 0.0), limit_s)
 
     def usable(self, now: Time, timeout_s: float) -> bool:
         return self.received is not None and math.isfinite(self.position_rad) and \
@@ -293,12 +310,15 @@ class DiffDriveNode(Node):
         try:
             fields = (msg.linear.x, msg.linear.y, msg.linear.z,
                       msg.angular.x, msg.angular.y, msg.angular.z)
-            if not all(math.isfinite(value) for value in fields):
+            if not all(math.isfinite(value) for value in fields) or not all(
+                    math.isfinite(speed) for speed in
+                    self.kinematics.wheel_speeds(msg.linear.x, msg.angular.z)):
+                # (a finite twist whose wheel speeds overflow, 1e308 m/s, is no number either)
                 self.rejected_commands += 1
                 self.get_logger().warning(
-                    f'rejected cmd_vel with a non-finite field (linear.x={msg.linear.x}, '
-                    f'angular.z={msg.angular.z}); {self.rejected_commands} rejected so far',
-                    throttle_duration_sec=1.0)
+                    f'rejected cmd_vel with a non-finite field or wheel speed (linear.x='
+                    f'{msg.linear.x}, angular.z={msg.angular.z}); {self.rejected_commands} '
+                    'rejected so far', throttle_duration_sec=1.0)
                 return
             self.target = (float(msg.linear.x), float(msg.angular.z))
             self.last_command = self.get_clock().now()
@@ -325,6 +345,11 @@ class DiffDriveNode(Node):
                         f'{self.cmd_vel_timeout_s} s); {self.stale_commands} stale so far',
                         throttle_duration_sec=1.0)
                     return
+            if msg.header.frame_id not in ('', self.base_frame):
+                self.get_logger().warning(
+                    f'cmd_vel in frame {msg.header.frame_id!r}: taken as {self.base_frame!r} '
+                    '(not transformed, as diff_drive_controller does)',
+                    throttle_duration_sec=10.0)
             self._on_cmd_vel(msg.twist)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'cmd_vel failed: {exc}', throttle_duration_sec=1.0)
@@ -347,23 +372,21 @@ class DiffDriveNode(Node):
     def _on_tick(self) -> None:
         try:
             now = self.get_clock().now()
-            dt = self._elapsed(now)
-            self._command(now, dt)
-            self._integrate(now, dt)
+            elapsed = self._elapsed(now)
+            # A late cycle may not permit a larger jump in speed than the acceleration
+            # limits allow over 5 periods; the wheels moved all the time, though.
+            self._command(now, min(elapsed, 5.0 * self.period_s))
+            self._integrate(now, min(elapsed, self.wheel_status_timeout_s))
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'diff drive cycle failed: {exc}', throttle_duration_sec=1.0)
 
     def _elapsed(self, now: Time) -> float:
-        """Return s since the last cycle; 0 on the first one or after a clock jump back.
-
-        A stalled executor is capped at 5 periods, so one late cycle cannot
-        permit a jump in speed larger than the acceleration limits over 5 periods.
-        """
+        """Return s since the last cycle; 0 on the first one or after a clock jump back."""
         last, self._last_tick = self._last_tick, now
         if last is None:
             return 0.0
         dt = (now - last).nanoseconds * 1e-9
-        return min(dt, 5.0 * self.period_s) if dt > 0.0 else 0.0
+        return dt if dt > 0.0 else 0.0
 
     def _command(self, now: Time, dt: float) -> None:
         fresh = self.last_command is not None and \
@@ -419,13 +442,23 @@ class DiffDriveNode(Node):
         self._publish_odometry(now)
 
     def _positions(self, now: Time) -> tuple[float, float] | None:
-        """Both wheels' positions (rad) when position feedback is on and both are fresh."""
+        """Return both wheels' positions (rad) at one moment (None: not to be used).
+
+        None unless position feedback is on and both are fresh. Each wheel reports on
+        its own topic, measured a bus cycle or more apart (at 3 rad/s, 20 ms is 0.06
+        rad of wheel): taken as they come, the pair would say the robot turned back
+        and forth. The earlier is carried on to the later one's moment at its speed.
+        """
         if not self.position_feedback:
             return None
-        wheels = (self.left_position, self.right_position)
-        if not all(w.usable(now, self.wheel_status_timeout_s) for w in wheels):
+        left, right = self.left_position, self.right_position
+        if not all(w.usable(now, self.wheel_status_timeout_s) for w in (left, right)):
             return None
-        return self.left_position.position_rad, self.right_position.position_rad
+        if left.measured is None or right.measured is None:
+            return left.position_rad, right.position_rad
+        moment = max(left.measured, right.measured)
+        limit = self.wheel_status_timeout_s
+        return left.at(moment, limit), right.at(moment, limit)
 
     def _publish_odometry(self, now: Time) -> None:
         estimate = self.odometry.estimate

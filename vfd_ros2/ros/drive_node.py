@@ -27,11 +27,14 @@ from __future__ import annotations
 import math
 from typing import Any, Callable
 
+from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
@@ -230,18 +233,24 @@ class DriveNode(Node):
         try:
             state = self.controller.state
             self._ever_online |= state.online
-            stamp = self.get_clock().now().to_msg()
-            if state is not self._published_state:
+            now = self.get_clock().now()
+            stamp = now.to_msg()
+            measured = state is not self._published_state
+            if measured:
                 self._status_msg = status_message(state, stamp, self.frame_id,
                                                   self.profile_name)
-                self._joint_msg = joint_state_message([(self.joint_name, state)], stamp)
+                self._joint_msg = joint_state_message([(self.joint_name, state)],
+                                                      self._measured_at(state, now))
                 self._published_state = state
             else:
                 # The loop has not polled since (a drive on a long bus cycle): the same
-                # snapshot gives the same messages, so only their stamps are new.
-                self._status_msg.header.stamp = self._joint_msg.header.stamp = stamp
+                # snapshot gives the same status with a new stamp. joint_states carries
+                # when its position was measured, so it waits for the next: the same
+                # stamp twice is TF_REPEATED_DATA to robot_state_publisher's listeners.
+                self._status_msg.header.stamp = stamp
             self.status_pub.publish(self._status_msg)
-            self.joint_pub.publish(self._joint_msg)
+            if measured:
+                self.joint_pub.publish(self._joint_msg)
             fault = state.active_fault
             if not self._fault_published or (fault.code, fault.subcode) != \
                     (self._last_fault.code, self._last_fault.subcode):
@@ -253,6 +262,18 @@ class DriveNode(Node):
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'status publishing failed: {exc}',
                                     throttle_duration_sec=5.0)
+
+    def _measured_at(self, state: DriveState, now: Time) -> TimeMsg:
+        """Return when ``state`` was measured, on the node's clock (JointState's stamp).
+
+        Two wheels' positions then pair up by time (diff_drive), although the bus
+        read them a cycle apart and their nodes publish them together. Under
+        simulated time, or for a state older than a second, the publishing time.
+        """
+        age = self.controller.age_of(state)
+        if self.get_clock().ros_time_is_active or not 0.0 <= age < 1.0:
+            return now.to_msg()
+        return (now - Duration(nanoseconds=round(age * 1e9))).to_msg()
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """Return this drive's entry on /diagnostics."""
