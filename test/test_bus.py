@@ -585,8 +585,22 @@ def test_a_profile_without_a_map_for_the_transport_is_refused():
     ({'transport.parity': 'X'}, 'N, E or O'),
     ({'transport.parity': 'even'}, 'N, E or O'),
     ({'transport.unit_id': 0}, 'unit id 0 is the broadcast address'),
+    # 1000 rad/s is 718 % of the AM's rated speed: its setpoint P07.33 takes 100 %
+    ({'max_velocity': 1000.0}, r'max_velocity 1000 rad/s: .* P07\.33 .* beyond its range'),
 ])
 def test_serial_link_settings_no_drive_can_use_are_refused(settings, why):
     from vfd_ros2.control.factory import build_controller
     with pytest.raises(ParameterError, match=why):
         build_controller({'transport.port': '/dev/null', **settings})
+
+
+def test_a_bus_drive_takes_its_drive_class_settings():
+    """drive.object_set, drive.station_alias, ...: drive_node settings, so bus settings too."""
+    document = {'bus': {'transport.type': 'canopen', 'transport.interface': 'virtual',
+                        'transport.channel': 'x'},
+                'drives': {'left': {'drive.profile': 'kinco_ec', 'transport.unit_id': 1,
+                                    'drive.object_set': 'ds402'}}}
+    assert parse_bus_config(document).drives[0].settings['drive.object_set'] == 'ds402'
+    document['drives']['left']['drive.objectset'] = 'ds402'
+    with pytest.raises(ParameterError, match="unknown setting 'drive.objectset'"):
+        parse_bus_config(document)

@@ -546,3 +546,37 @@ def test_an_idle_drive_is_enabled_before_any_command(make_can_harness):
     wheel.stream(1.0)
     wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
                       'running on the commands')
+
+
+def test_synchronous_pdos_without_a_sync_producer_are_not_shown_as_live(make_can_harness):
+    """sync_producer false and nobody else sends SYNC: no TPDO ever comes.
+
+    Its status (read once at connect) used to be shown online for ever, a drive
+    started from elsewhere reported as standing still.
+    """
+    h = make_can_harness(node_parameters={'transport.sync_producer': False})
+    wheel = h.wheels[1]
+    status = wheel.wait_status(lambda s: 'sync_producer is false' in s.stop_reason, 6.0,
+                               'no TPDO named, with its likely cause')
+    assert 'no TPDO1 from node 1' in status.stop_reason and not status.online
+
+
+def test_canopen_settings_that_cannot_work_are_refused_at_start():
+    from vfd_ros2.control.factory import build_controller
+    from vfd_ros2.errors import ParameterError
+    base = {'drive.profile': 'cia402_velocity', 'transport.type': 'canopen',
+            'transport.interface': 'virtual', 'transport.channel': 'refused',
+            'gear_ratio': 10.0}
+    # rpm per count off by 1000: 0.5 rad/s became 47746 counts, clamped to the drive's
+    # top speed, while the measured speed (scaled the same way) looked slow
+    with pytest.raises(ParameterError, match=r'max_velocity 10 rad/s: .* beyond its range'
+                                             r'.*drive\.velocity_scale'):
+        build_controller({**base, 'drive.velocity_scale': 0.001})
+    with pytest.raises(ParameterError, match='heartbeat_timeout 0.1 s is shorter than 1.5 '
+                                             'heartbeat periods'):
+        build_controller({**base, 'transport.heartbeat_ms': 1000,
+                          'transport.heartbeat_timeout': 0.1})
+    controller = build_controller(base)
+    with pytest.raises(ParameterError, match='beyond its range'):
+        controller.reconfigure(max_velocity=1e6)
+    assert controller.config.max_velocity == 10.0

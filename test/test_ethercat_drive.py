@@ -419,7 +419,7 @@ def test_shipped_ethercat_bus_config_and_bad_settings():
                      ({'transport.realtime_priority': 120}, 'use 0..99')):
         with pytest.raises(TransportError, match=why):
             build_transport({**base, **bad})
-    with pytest.raises(Exception, match='no ethercat section'):
+    with pytest.raises(Exception, match='profile boneng_am is for modbus_rtu, not ethercat'):
         build_transport({**base, 'drive.profile': 'boneng_am'})
 
 

@@ -18,6 +18,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import yaml
 
+from ..drives import drive_class_for
 from ..errors import ParameterError, TransportError
 from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
@@ -71,8 +72,10 @@ def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
     name = str(bus.pop('name', 'bus'))
     known = {s.name for s in SETTINGS}
     transport_type = str(bus.get('transport.type', 'modbus_rtu'))
-    link_keys = {'transport.type'} | {f'transport.{p.name}' for p in
-                                      load_transport_class(transport_type).parameters}
+    transport_class = load_transport_class(transport_type)
+    link_keys = {'transport.type'} | {f'transport.{p.name}' for p in transport_class.parameters}
+    # what a drive entry may set: any drive_node setting, its drive class's drive.* ones
+    known |= {f'drive.{p.name}' for p in drive_class_for(transport_class).settings}
     for key, value in bus.items():
         if not (key.startswith('transport.') or key in BUS_KEYS):
             raise ParameterError(f'bus setting {key!r}: only transport.* and {BUS_KEYS}')

@@ -125,6 +125,7 @@ class DriveController:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.drive = drive
         self.config = config
+        self._check_velocity_fits(config.max_velocity)
         self._clock = clock
         self._lock = threading.Lock()
         self._watchdog = CommandWatchdog(config.command_timeout, clock)
@@ -178,6 +179,20 @@ class DriveController:
                                  protection=self._protection_written())
 
     # --- sizing -------------------------------------------------------------------
+
+    def _check_velocity_fits(self, max_velocity: float) -> None:
+        """Refuse a max_velocity the drive's setpoint cannot carry unclamped (ParameterError).
+
+        Within it every command is written as commanded; beyond it the setpoint
+        would be clamped, which with a wrong scaling runs the motor flat out.
+        (A drive class of a plugin without ``setpoint_beyond`` is trusted.)
+        """
+        beyond = getattr(self.drive, 'setpoint_beyond', None)
+        if beyond is None:
+            return
+        problem = beyond(max_velocity) or beyond(-max_velocity)
+        if problem:
+            raise ParameterError(f'max_velocity {max_velocity:g} rad/s: {problem}')
 
     def addressing_interval(self) -> float:
         """Worst-case time between two requests to this drive when it runs alone on its link."""
@@ -286,6 +301,7 @@ class DriveController:
         if unknown:
             raise ParameterError(f'not changeable at run time: {", ".join(sorted(unknown))}')
         new = replace(self.config, **changes)       # __post_init__ validates
+        self._check_velocity_fits(new.max_velocity)
         replan = False
         if new.cycle_period != self.config.cycle_period:
             if self._loop is not None:

@@ -74,6 +74,21 @@ class HostLossProtection:
         return f'{text} ({self.note})' if self.note else text
 
 
+def beyond_register(velocity: float, raw: float, low: float, high: float, register: str,
+                    scaling_hint: str) -> str:
+    """Return why ``velocity`` (rad/s) cannot be written unclamped ('' if it can).
+
+    ``raw`` is its setpoint before any clamping, ``low``..``high`` what ``register``
+    takes. A clamped setpoint runs the drive at the register's end, not at the
+    command: with a wrong scaling (rpm per count off by 1000) a slow command runs
+    the motor flat out while the measured speed, scaled the same wrong way, looks slow.
+    """
+    if low <= raw <= high:
+        return ''
+    return (f'{velocity:g} rad/s is {raw:.6g} in {register}, beyond its range {low:g}..'
+            f'{high:g}: lower max_velocity, or check {scaling_hint}')
+
+
 def size_comm_timeout(parameter: Parameter, requested: float,
                       minimum: float) -> tuple[float, str]:
     """Choose the value of a drive's comm-loss timeout parameter; (seconds, note).
@@ -258,6 +273,9 @@ class Drive(Protocol):
         it could set of ``protection``: the controller reports that one (optional;
         CanopenDrive does, when the drive aborts 0x1016 or 0x1400:05).
         """
+
+    def setpoint_beyond(self, velocity: float) -> str:
+        """Return why ``velocity`` (rad/s) would be clamped in the setpoint ('' if not)."""
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None: ...

@@ -57,6 +57,7 @@ from .base import (
     HostLossProtection,
     ObjectDictionaryParameters,
     Reading,
+    beyond_register,
 )
 from .cia402 import Cia402Control
 
@@ -70,6 +71,10 @@ EMCY_LOGGED_MAX = 32
 #: after this many of its periods, and at least TPDO_SLACK s more: its values are stale
 TPDO_PERIODS_MISSED = 3
 TPDO_SLACK = 0.25
+#: a heartbeat consumer's timeout must span this many producer periods (one may be late)
+HEARTBEAT_TIMEOUT_PERIODS_MIN = 1.5
+#: s between two SYNCs at most that another SYNC producer is trusted with (sync_producer false)
+FOREIGN_SYNC_PERIOD = 0.5
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
@@ -143,6 +148,14 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self.unit_id = unit_id
         self.scaling = scaling
         self.spec = profile.canopen
+        heartbeat = (transport.heartbeat_ms or self.spec.heartbeat_ms) / 1000.0
+        if transport.heartbeat_timeout and heartbeat and \
+                transport.heartbeat_timeout < HEARTBEAT_TIMEOUT_PERIODS_MIN * heartbeat:
+            raise ParameterError(
+                f'transport.heartbeat_timeout {transport.heartbeat_timeout:g} s is shorter than '
+                f'{HEARTBEAT_TIMEOUT_PERIODS_MIN:g} heartbeat periods ({heartbeat * 1000:g} ms: '
+                "transport.heartbeat_ms or the profile's): a healthy drive would go offline "
+                "between two heartbeats; 0 = the profile's factor x the period")
         values = {p.name: p.default for p in self.settings}
         values.update(settings or {})
         self.objects = self.spec.selected(str(values['object_set']))
@@ -321,6 +334,10 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             if spec.transmission_type <= SYNCHRONOUS_MAX:
                 if self.transport.sync_producer and self._interval:
                     rates[number] = max(spec.transmission_type, 1) * self._interval
+                elif not self.transport.sync_producer:
+                    # Another device's SYNC, at a rate not known here: at least this
+                    # often, or its status would be shown for ever once it stopped.
+                    rates[number] = max(spec.transmission_type, 1) * FOREIGN_SYNC_PERIOD
             elif spec.tpdo_event_timer_ms > 0:
                 rates[number] = spec.tpdo_event_timer_ms / 1000.0
         return rates
@@ -350,9 +367,11 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
                     raise BadFrame(f'{malformed} (PDO mapping 0x{0x1A00 + number - 1:04X} '
                                    'not as written at connect?): its status is stale')
                 self.transport.count(self.unit_id, 'timeouts')
+                hint = '' if not synchronous or self.transport.sync_producer else \
+                    ': transport.sync_producer is false; is another device sending SYNC?'
                 raise CommTimeout(f'no TPDO{number} from node {self.unit_id} for {age:.2f} s '
                                   f'(expected every {period * 1000:.0f} ms): its status is '
-                                  'stale')
+                                  f'stale{hint}')
 
     def _protect(self, protection: HostLossProtection, problems: list[str]) -> HostLossProtection:
         """Produce the host heartbeat and set what ``protection`` plans; return what holds.
@@ -422,9 +441,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
 
     # --- control ----------------------------------------------------------------------
 
-    def _native(self, velocity: float) -> int:
-        native = self.scaling.to_native(velocity, self.objects.velocity_unit)
-        raw = round(native / self.velocity_scale)
+    def _setpoint_range(self) -> tuple[int, int]:
         low, high = self.objects.target_velocity.type.bounds
         setpoint = self.profile.parameters.get(self.profile.velocity.setpoint)
         if setpoint is not None and setpoint.index == self.objects.target_velocity.index:
@@ -432,7 +449,19 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
                 low = max(low, math.ceil(setpoint.minimum / setpoint.scale))
             if setpoint.maximum is not None:
                 high = min(high, math.floor(setpoint.maximum / setpoint.scale))
-        return min(max(raw, low), high)
+        return low, high
+
+    def setpoint_beyond(self, velocity: float) -> str:
+        """Return why ``velocity`` would be clamped in the target velocity ('' if not)."""
+        native = self.scaling.to_native(velocity, self.objects.velocity_unit)
+        return beyond_register(velocity, native / self.velocity_scale, *self._setpoint_range(),
+                               f'0x{self.objects.target_velocity.index:04X}',
+                               'drive.velocity_scale (rpm per count) and gear_ratio')
+
+    def _native(self, velocity: float) -> int:
+        native = self.scaling.to_native(velocity, self.objects.velocity_unit)
+        low, high = self._setpoint_range()
+        return min(max(round(native / self.velocity_scale), low), high)
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None:

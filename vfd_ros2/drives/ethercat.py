@@ -50,6 +50,7 @@ from .base import (
     HostLossProtection,
     ObjectDictionaryParameters,
     Reading,
+    beyond_register,
 )
 from .canopen import GENERIC_ERROR, cia_fault
 from .cia402 import Cia402Control
@@ -274,11 +275,18 @@ class EthercatDrive(DriveOnLink, ObjectDictionaryParameters):
         self._last_controlword = controlword
         self.last_setpoint_raw = velocity_raw
 
+    def setpoint_beyond(self, velocity: float) -> str:
+        """Return why ``velocity`` would be clamped in the target velocity ('' if not)."""
+        native = self.scaling.to_native(velocity, self.objects.velocity_unit)
+        return beyond_register(velocity, native / self.velocity_scale,
+                               *self.objects.target_velocity.type.bounds,
+                               f'0x{self.objects.target_velocity.index:04X}',
+                               'drive.velocity_scale (rpm per count) and gear_ratio')
+
     def _native(self, velocity: float) -> int:
         native = self.scaling.to_native(velocity, self.objects.velocity_unit)
-        raw = round(native / self.velocity_scale)
         low, high = self.objects.target_velocity.type.bounds
-        return min(max(raw, low), high)
+        return min(max(round(native / self.velocity_scale), low), high)
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None:

@@ -38,6 +38,7 @@ from .base import (
     HostLossProtection,
     ParameterValue,
     Reading,
+    beyond_register,
     check_write,
     size_comm_timeout,
 )
@@ -336,6 +337,18 @@ class ModbusDrive(DriveOnLink):
                     encode_words(parameter, raw))
 
     # --- control --------------------------------------------------------------
+
+    def setpoint_beyond(self, velocity: float) -> str:
+        """Return why ``velocity`` would be clamped in the setpoint register ('' if not)."""
+        spec, p = self.profile.velocity, self._setpoint
+        native = self.scaling.to_native(velocity, spec.setpoint_unit)
+        if spec.direction is DirectionMode.COMMAND:
+            native = abs(native)
+        type_low, type_high = (bound * p.scale for bound in p.type.bounds)
+        low = max(p.minimum if p.minimum is not None else -math.inf, min(type_low, type_high))
+        high = min(p.maximum if p.maximum is not None else math.inf, max(type_low, type_high))
+        return beyond_register(velocity, native, low, high, f'{p.code} ({p.unit or "raw"})',
+                               'gear_ratio and motor.rated_speed_rpm / motor.pole_pairs')
 
     def _native_setpoint(self, velocity: float) -> tuple[int, str]:
         """Output-shaft rad/s -> (raw setpoint, run action) within the register range."""
