@@ -580,3 +580,19 @@ def test_canopen_settings_that_cannot_work_are_refused_at_start():
     with pytest.raises(ParameterError, match='beyond its range'):
         controller.reconfigure(max_velocity=1e6)
     assert controller.config.max_velocity == 10.0
+
+
+def test_a_can_channel_that_no_setting_could_open_is_refused_at_start():
+    """These used to be retried for ever with the node up and exit code 0."""
+    from vfd_ros2.errors import ParameterError
+    from vfd_ros2.transports.canopen import CanopenTransport
+    with pytest.raises(ParameterError, match="'socketcann' is not a python-can interface"):
+        CanopenTransport('socketcann', 'can0')
+    with pytest.raises(ParameterError, match='socketcand needs .* host, port missing'):
+        CanopenTransport('socketcand', 'can0')
+    with pytest.raises(ParameterError, match="port 'x': a TCP port number"):
+        CanopenTransport('socketcand', 'can0', can_options={'host': '127.0.0.1', 'port': 'x'})
+    # a bit rate the interface does not take is said not to be applied (a WARN)
+    note, = CanopenTransport('socketcan', 'can0', bitrate=125000).link_notes
+    assert 'transport.bitrate 125000 is not applied' in note and 'ip link set can0' in note
+    assert CanopenTransport('virtual', 'x').link_notes == ()

@@ -69,11 +69,11 @@ def test_can_options_reach_the_bus_and_are_part_of_the_channel_key():
 
 
 def test_an_option_the_interface_does_not_take_is_a_parameter_error():
-    # socketcand without host and port: python-can's TypeError, said as a setting error
-    transport = CanopenTransport(interface='socketcand', channel='can0',
-                                 can_options='{"tcp_tune": true}')
-    with pytest.raises(ParameterError, match='transport.can_options'):
-        transport.open()
+    # socketcand without host and port: refused when the transport is made (it used to be
+    # python-can's TypeError at every connect attempt, the node up and retrying)
+    with pytest.raises(ParameterError, match='transport.can_options: host, port missing'):
+        CanopenTransport(interface='socketcand', channel='can0',
+                         can_options='{"tcp_tune": true}')
 
 
 # --- the protocol's text ------------------------------------------------------------------

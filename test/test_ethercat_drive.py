@@ -376,13 +376,6 @@ def test_sync_mode_dc(start_segment, make_wheel):
     assert sim.esc(0)['sync0_cycle_ns'] == 1_000_000
 
 
-def test_a_drive_without_dc_refuses_sync_mode_dc(start_segment, make_wheel):
-    start_segment([BONENG_MH_EC])
-    mh = make_wheel('boneng_mh', **{'transport.sync_mode': 'dc'})
-    status = mh.wait_status(lambda s: 'DC' in s.stop_reason, 10.0, 'DC refused')
-    assert not status.online and 'free_run' in status.stop_reason
-
-
 def test_simulated_drives_and_profiles_agree():
     """The simulator reads identity, assignment and sync from the profiles; mappings match."""
     for spec, profile in ((BONENG_MH_EC, 'boneng_mh'), (IMO_HD2_EC_TX508, 'imo_hd2')):
@@ -484,12 +477,20 @@ def test_identity_check_and_host_loss_plan_without_io():
         EthercatDrive(load_profile('imo_hd2'), transport, 1, VelocityScaling(10.0))
 
 
-def test_dc_cycle_the_drive_does_not_take_is_a_clear_error(start_segment, make_wheel):
-    start_segment([IMO_HD2_EC_TX508])
-    hd2 = make_wheel('imo_hd2', **{'transport.sync_mode': 'dc', 'transport.cycle_time': 0.003})
-    status = hd2.wait_status(lambda s: 'accepts cycle times' in s.stop_reason, 10.0,
-                             'cycle refused')
-    assert not status.online and 'not transport.cycle_time 3000 us' in status.stop_reason
+def test_a_sync_the_drive_does_not_take_is_refused_at_start():
+    """Known from the profile before any frame: it used to be retried for ever."""
+    from vfd_ros2.control.factory import build_controller
+    from vfd_ros2.errors import TransportError
+    base = {'transport.type': 'ethercat', 'transport.interface': 'eth9',
+            'transport.sync_mode': 'dc'}
+    with pytest.raises(TransportError, match='slave 1 accepts cycle times 250 us, 500 us, '
+                                             '1000 us, 2000 us, not transport.cycle_time '
+                                             '3000 us'):
+        build_controller({**base, 'drive.profile': 'imo_hd2', 'transport.cycle_time': 0.003})
+    with pytest.raises(TransportError, match='slave 1 has no DC sync'):
+        build_controller({**base, 'drive.profile': 'boneng_mh', 'transport.cycle_time': 0.002})
+    assert build_controller({**base, 'drive.profile': 'imo_hd2',
+                             'transport.cycle_time': 0.002}).drive.unit_id == 1
 
 
 def test_slave_found_by_station_alias(start_segment, make_wheel):

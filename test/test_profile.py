@@ -633,3 +633,13 @@ def test_a_code_whose_meaning_only_a_write_can_have_passes_on_a_read():
     modbus = shipped_profile('boneng_am').modbus
     assert modbus.lasting_refusal(6, write=True) and not modbus.lasting_refusal(6, write=False)
     assert modbus.lasting_refusal(2, write=False)          # illegal address: lasting anyway
+
+
+def test_objects_are_found_as_index_and_subindex_too():
+    profile = load_profile('cia402_velocity')
+    for key in ('0x6083', '0x6083:00', '0X6083:0x00', ' 0x6083:0 ', 'profile_acceleration'):
+        assert profile.parameter(key).code == '0x6083', key
+    with pytest.raises(ParameterError, match=r'an object as 0x6083 or 0x6083:00'):
+        profile.parameter('24707')
+    with pytest.raises(ParameterError, match='unknown parameter'):
+        profile.parameter('0x6083:01')          # no such subindex

@@ -13,6 +13,7 @@ import dataclasses
 import enum
 import functools
 import math
+import re
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Mapping
@@ -44,6 +45,10 @@ class Access(str, enum.Enum):
 def _decimals(scale: float) -> int:
     """Return the decimals that write ``scale`` exactly (0.1: 1, 0.05: 2; at most 12)."""
     return next((d for d in range(13) if round(scale, d) == scale), 12)
+
+
+#: a CANopen / CoE object as ``0x6083:00`` (index and subindex in hex, as the manuals write)
+OBJECT_ADDRESS = re.compile(r'0[xX]([0-9a-fA-F]{1,4}):(?:0[xX])?([0-9a-fA-F]{1,2})')
 
 
 @dataclass(frozen=True)
@@ -677,9 +682,16 @@ class Profile:
             return self.parameters[code]
         if stripped in self._by_name:
             return self.parameters[self._by_name[stripped]]
+        if (found := OBJECT_ADDRESS.fullmatch(stripped)) is not None:
+            index, subindex = int(found[1], 16), int(found[2], 16)
+            for parameter in self.parameters.values():
+                if (parameter.index, parameter.subindex) == (index, subindex):
+                    return parameter
+        objects = any(parameter.index is not None for parameter in self.parameters.values())
         raise ParameterError(
             f'unknown parameter {quote(key)} for profile {self.name} '
-            '(use a function code such as those in the manual, or a readable name)')
+            '(use a function code such as those in the manual'
+            + (', an object as 0x6083 or 0x6083:00' if objects else '') + ', or a readable name)')
 
     def parameter_at(self, address: int) -> Parameter | None:
         code = self._by_address.get(address)

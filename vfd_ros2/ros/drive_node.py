@@ -24,6 +24,7 @@ the executor.
 
 from __future__ import annotations
 
+import difflib
 import math
 from typing import Any, Callable
 
@@ -65,6 +66,9 @@ from .messages import (
 )
 from .parameters import LiveParameters, check_value, descriptor, unknown_overrides
 
+#: the prefixes of this node's parameter names: an unknown one with them is a misspelling
+OUR_PREFIXES = ('transport.', 'drive.', 'motor.', 'position.')
+
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
 
@@ -91,77 +95,101 @@ class DriveNode(Node):
         wake-up) and is told of a changed rate by ``on_rate_change``.
         """
         super().__init__(node_name, **kwargs)
-        #: velocity commands and ~/enable are taken (a managed node: only while active)
-        self.motion_allowed = not managed
-        # Live: validated and applied at once. A bus's rate and priority belong to the
-        # bus node (read-only here); auto_enable acts at start-up only on a plain node,
-        # at every activate on a managed one.
-        fixed_here = (set() if managed else {'auto_enable'}) | \
-            (set(BUS_KEYS) if controller is not None else set())
-        live = {s.name for s in SETTINGS if s.live and s.name not in fixed_here}
-        values = {s.name: self._declare(s.name, s.default, s.description, s.minimum,
-                                        s.maximum, s.name in live) for s in SETTINGS}
-        for setting in SETTINGS:
-            check_value(setting.name, values[setting.name], setting.minimum, setting.maximum)
-        transport_class = load_transport_class(str(values['transport.type']))
-        for prefix, settings in (('transport', transport_class.parameters),
-                                 ('drive', drive_class_for(transport_class).settings)):
-            for setting in settings:
-                name = f'{prefix}.{setting.name}'
-                values[name] = self._declare(name, setting.default, setting.description,
-                                             setting.minimum, setting.maximum)
-                check_value(name, values[name], setting.minimum, setting.maximum)
-        self._owns_controller = controller is None
-        self.controller: DriveController = controller or build_controller(values)
-        self.profile_name = self.controller.drive.profile.name
-        self.frame_id = str(values['frame_id'])
-        self._ever_online = False
-        self._last_fault = NO_FAULT
-        self._fault_published = False
-        # the snapshot ~/status and joint_states were last built from, and those messages
-        self._published_state: DriveState | None = None
-        self._status_msg = DriveStatus()
-        self._joint_msg = JointState()
+        try:
+            #: velocity commands and ~/enable are taken (a managed node: only while active)
+            self.motion_allowed = not managed
+            # Live: validated and applied at once. A bus's rate and priority belong to the
+            # bus node (read-only here); auto_enable acts at start-up only on a plain node,
+            # at every activate on a managed one.
+            fixed_here = (set() if managed else {'auto_enable'}) | \
+                (set(BUS_KEYS) if controller is not None else set())
+            live = {s.name for s in SETTINGS if s.live and s.name not in fixed_here}
+            values = {s.name: self._declare(s.name, s.default, s.description, s.minimum,
+                                            s.maximum, s.name in live) for s in SETTINGS}
+            for setting in SETTINGS:
+                check_value(setting.name, values[setting.name], setting.minimum, setting.maximum)
+            transport_class = load_transport_class(str(values['transport.type']))
+            for prefix, settings in (('transport', transport_class.parameters),
+                                     ('drive', drive_class_for(transport_class).settings)):
+                for setting in settings:
+                    name = f'{prefix}.{setting.name}'
+                    values[name] = self._declare(name, setting.default, setting.description,
+                                                 setting.minimum, setting.maximum)
+                    check_value(name, values[name], setting.minimum, setting.maximum)
+            self._refuse_misspelt_parameters()
+            self._owns_controller = controller is None
+            self.controller: DriveController = controller or build_controller(values)
+            self.profile_name = self.controller.drive.profile.name
+            self.frame_id = str(values['frame_id'])
+            self._ever_online = False
+            self._last_fault = NO_FAULT
+            self._fault_published = False
+            # the snapshot ~/status and joint_states were last built from, and those messages
+            self._published_state: DriveState | None = None
+            self._status_msg = DriveStatus()
+            self._joint_msg = JointState()
 
-        self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
-        self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
-        self.joint_name = str(values['joint_name']) or \
-            default_joint_name(self.get_namespace(), self.get_name())
-        self.joint_pub = self.create_publisher(JointState, 'joint_states', 10)
-        self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
-        for topic in self.controller.drive.profile.setpoints:
-            self.create_subscription(Float64, f'~/{topic}',
-                                     lambda msg, t=topic: self._on_setpoint(t, msg), 10)
-        create_deferred_service(self, GetDriveParameter, '~/get_drive_parameter',
-                                self._on_get_parameter, SERVICE_QOS)
-        create_deferred_service(self, SetDriveParameter, '~/set_drive_parameter',
-                                self._on_set_parameter, SERVICE_QOS)
-        for action in ('enable', 'disable', 'stop', 'reset_fault'):
-            create_deferred_service(self, Trigger, f'~/{action}', self._trigger_handler(action),
-                                    SERVICE_QOS)
-        self.status_rate = float(values['status_rate'])
-        self.diagnostics_rate = float(values['diagnostics_rate'])
-        self._on_rate_change = on_rate_change
-        self._rate_timers = {}
-        if own_timers:
-            self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-            self._rate_timers = {
-                'status_rate': self.create_timer(1.0 / self.status_rate, self.publish_status),
-                'diagnostics_rate': self.create_timer(1.0 / self.diagnostics_rate,
-                                                      self._publish_diagnostics)}
-        self.live_parameters = LiveParameters(
-            self, live, self._apply_parameters,
-            {s.name: (s.minimum, s.maximum) for s in SETTINGS})
-        if managed:
-            self.controller.intent.enabled = False       # enabled at activate, per policy
-        elif self._owns_controller:
-            self.controller.start()
-        if unknown := unknown_overrides(self):
-            self.get_logger().error(
-                f'parameters given but not known to drive_node, not applied (misspelt?): '
-                f'{", ".join(unknown)}')
-        self.get_logger().info(
-            f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
+            self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
+            self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
+            self.joint_name = str(values['joint_name']) or \
+                default_joint_name(self.get_namespace(), self.get_name())
+            self.joint_pub = self.create_publisher(JointState, 'joint_states', 10)
+            self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
+            for topic in self.controller.drive.profile.setpoints:
+                self.create_subscription(Float64, f'~/{topic}',
+                                         lambda msg, t=topic: self._on_setpoint(t, msg), 10)
+            create_deferred_service(self, GetDriveParameter, '~/get_drive_parameter',
+                                    self._on_get_parameter, SERVICE_QOS)
+            create_deferred_service(self, SetDriveParameter, '~/set_drive_parameter',
+                                    self._on_set_parameter, SERVICE_QOS)
+            for action in ('enable', 'disable', 'stop', 'reset_fault'):
+                create_deferred_service(self, Trigger, f'~/{action}',
+                                        self._trigger_handler(action), SERVICE_QOS)
+            self.status_rate = float(values['status_rate'])
+            self.diagnostics_rate = float(values['diagnostics_rate'])
+            self._on_rate_change = on_rate_change
+            self._rate_timers = {}
+            if own_timers:
+                self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+                self._rate_timers = {
+                    'status_rate': self.create_timer(1.0 / self.status_rate, self.publish_status),
+                    'diagnostics_rate': self.create_timer(1.0 / self.diagnostics_rate,
+                                                          self._publish_diagnostics)}
+            self.live_parameters = LiveParameters(
+                self, live, self._apply_parameters,
+                {s.name: (s.minimum, s.maximum) for s in SETTINGS})
+            if managed:
+                self.controller.intent.enabled = False       # enabled at activate, per policy
+            elif self._owns_controller:
+                self.controller.start()
+            self.get_logger().info(
+                f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
+        except BaseException:
+            # Refused (a setting that cannot work): the node goes, nothing opened.
+            super().destroy_node()
+            raise
+
+    def _refuse_misspelt_parameters(self) -> None:
+        """Refuse given parameters this node does not know that look meant for it.
+
+        rclpy drops unknown overrides: a misspelt ``comand_timeout`` would leave the
+        watchdog at its default without a word. One close to a known name, or with
+        a prefix of ours (transport., drive., motor., position.), refuses the start;
+        any other (a params file shared by many nodes) is only named.
+        """
+        unknown = unknown_overrides(self)
+        if not unknown:
+            return
+        known = list(self._parameters)
+        meant = {name: difflib.get_close_matches(name, known, n=1, cutoff=0.8)
+                 for name in unknown}
+        ours = [name for name in unknown if meant[name] or name.startswith(OUR_PREFIXES)]
+        if ours:
+            raise ParameterError('unknown parameter(s) ' + ', '.join(
+                f'{name}' + (f' (did you mean {meant[name][0]}?)' if meant[name] else '')
+                for name in ours) + ': nothing started')
+        self.get_logger().warning(f'parameters given but not known to drive_node, not applied: '
+                                  f'{", ".join(unknown)}')
 
     def _declare(self, name: str, default: Any, description: str,
                  minimum: float | None = None, maximum: float | None = None,

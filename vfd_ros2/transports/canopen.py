@@ -337,6 +337,32 @@ def parse_can_options(options: str | Mapping[str, Any] | None) -> dict[str, Any]
     return dict(parsed)
 
 
+def check_interface(interface: str, options: Mapping[str, Any]) -> None:
+    """Refuse what no channel could ever open (ParameterError), instead of retrying it.
+
+    An interface python-can does not know, and socketcand without the bridge's
+    address (its ``host`` and ``port`` are can.Bus arguments: ``transport.can_options``).
+    """
+    if interface not in can.VALID_INTERFACES:
+        raise ParameterError(f'transport.interface {interface!r} is not a python-can '
+                             f'interface (it has: {", ".join(sorted(can.VALID_INTERFACES))})')
+    if interface == 'socketcand':
+        missing = [key for key in ('host', 'port') if key not in options]
+        if missing:
+            raise ParameterError(
+                "transport.interface socketcand needs the bridge's address in "
+                f'transport.can_options: {", ".join(missing)} missing (e.g. '
+                '{"host": "127.0.0.1", "port": 29536})')
+        port = options['port']
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 < port < 65536:
+            raise ParameterError(f'transport.can_options port {port!r}: a TCP port number')
+
+
+#: python-can interfaces whose bus takes no bit rate: the interface keeps its own
+#: (socketcan: ``ip link set can0 type can bitrate ...``; socketcand: its host's)
+BITRATE_NOT_TAKEN = frozenset({'socketcan', 'socketcand', 'virtual', 'udp_multicast'})
+
+
 # --- the channel: one bus, one Network, one host heartbeat --------------------------------
 
 class _DropMessage(logging.Filter):
@@ -576,6 +602,9 @@ class CanopenTransport(Transport):
         if not 0 <= int(host_heartbeat_ms) <= 0xFFFF:
             raise ParameterError(f'transport.host_heartbeat_ms {host_heartbeat_ms} is outside '
                                  '0..65535')
+        self.can_options = parse_can_options(can_options)
+        if bus_factory is None:
+            check_interface(interface, self.can_options)
         self.interface = interface
         self.channel_name = channel
         self.bitrate = int(bitrate)
@@ -586,7 +615,6 @@ class CanopenTransport(Transport):
         self.host_node_id = int(host_node_id)
         self.host_heartbeat_ms = int(host_heartbeat_ms)
         self.sync_producer = bool(sync_producer)
-        self.can_options = parse_can_options(can_options)
         self.syncs = 0                 # SYNC frames sent
         self._last_rpdo = 0            # the channel's order number of this transport's last RPDO
         self._bus_factory = bus_factory
@@ -611,6 +639,15 @@ class CanopenTransport(Transport):
     @property
     def description(self) -> str:
         return f'can:{self.interface}:{self.channel_name}'
+
+    @property
+    def link_notes(self) -> tuple[str, ...]:
+        """A bit rate asked of an interface that takes none is not applied: say so."""
+        if self.bitrate and self.interface in BITRATE_NOT_TAKEN:
+            return (f"transport.bitrate {self.bitrate} is not applied: python-can's "
+                    f'{self.interface} interface keeps the bit rate it has (socketcan: '
+                    f'ip link set {self.channel_name} type can bitrate {self.bitrate})',)
+        return ()
 
     # --- nodes and the channel --------------------------------------------------------
 

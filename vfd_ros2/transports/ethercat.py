@@ -978,6 +978,19 @@ class EthercatTransport(Transport):
         if setup.position < 1:
             raise TransportError(f'EtherCAT slave position {setup.position}: positions start '
                                  'at 1 (the first slave after the master)')
+        # Known from the profile before any frame: refused now, not retried for ever.
+        where = f'slave alias {setup.alias}' if setup.alias else f'slave {setup.position}'
+        cycle, mode = self.settings.cycle_time_s, self.settings.sync_mode
+        if mode is SyncMode.DC and not setup.dc:
+            raise TransportError(f'{where} has no DC sync (free run only): set '
+                                 'transport.sync_mode free_run')
+        if mode is SyncMode.FREE_RUN and not setup.free_run:
+            raise TransportError(f'{where} does not run free: set transport.sync_mode dc')
+        if mode is SyncMode.DC and setup.sync_cycles_s and not any(
+                abs(cycle - c) < 1e-9 for c in setup.sync_cycles_s):
+            allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
+            raise TransportError(f'{where} accepts cycle times {allowed}, not '
+                                 f'transport.cycle_time {cycle * 1e6:g} us')
         with self._lock:
             if setup.position in self._setups:
                 raise TransportError(f'EtherCAT slave {setup.position} is attached twice')
@@ -1033,7 +1046,6 @@ class EthercatTransport(Transport):
                 for unit, setup in sorted(self._setups.items()):
                     if unit not in self._errors:
                         self._prepare(segment, identities, setup, self._where[unit])
-                self._check_sync(segment)
                 # no SYNC0 for a slave without DC, nor for one its drive cannot use (a
                 # refused cycle would keep the whole segment below SAFE-OP)
                 free_running = frozenset(self._where[unit] - 1
@@ -1153,23 +1165,6 @@ class EthercatTransport(Transport):
                 slave.sdo_write(index, subindex, data)
         except (TransportError, ProtocolException) as exc:
             self._errors[unit] = f'slave {position} set-up at PRE-OP failed: {exc}'
-
-    def _check_sync(self, segment: EthercatSegment) -> None:
-        cycle = self.settings.cycle_time_s
-        for unit, setup in self._setups.items():
-            if unit in self._errors:
-                continue
-            slave = f'slave {self._where.get(unit, unit)}'
-            if self.settings.sync_mode is SyncMode.DC and not setup.dc:
-                self._errors[unit] = (f'{slave} has no DC sync (free run only): set '
-                                      'transport.sync_mode free_run')
-            elif self.settings.sync_mode is SyncMode.FREE_RUN and not setup.free_run:
-                self._errors[unit] = f'{slave} does not run free: set transport.sync_mode dc'
-            elif self.settings.sync_mode is SyncMode.DC and setup.sync_cycles_s and not any(
-                    abs(cycle - c) < 1e-9 for c in setup.sync_cycles_s):
-                allowed = ', '.join(f'{c * 1e6:g} us' for c in setup.sync_cycles_s)
-                self._errors[unit] = (f'{slave} accepts cycle times {allowed}, not '
-                                      f'transport.cycle_time {cycle * 1e6:g} us')
 
     def _on_lost(self, position: int) -> None:
         # A lost slave gets its safe outputs, so that it never sees the last command
