@@ -596,3 +596,26 @@ def test_a_can_channel_that_no_setting_could_open_is_refused_at_start():
     note, = CanopenTransport('socketcan', 'can0', bitrate=125000).link_notes
     assert 'transport.bitrate 125000 is not applied' in note and 'ip link set can0' in note
     assert CanopenTransport('virtual', 'x').link_notes == ()
+
+
+def test_a_second_host_on_the_channel_is_named(make_can_harness):
+    """Frames only this host sends, heard from another device: SYNC, its heartbeat, RPDOs.
+
+    Two hosts on one node id, or commanding one drive, fought over it unnamed (both
+    online, one reporting an "unexpected start" the other had commanded).
+    """
+    h = make_can_harness()
+    wheel = h.wheels[1]
+    time.sleep(0.3)
+    assert 'another device' not in wheel.node.diagnostic_status().message   # the sim alone
+    other = can.Bus(interface='virtual', channel=h.channel)
+    try:
+        for cob_id, data in ((0x80, b''), (0x77F, b'\x05'), (0x201, b'\x0f\x00\x00\x00\x00\x00')):
+            other.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+    finally:
+        other.shutdown()
+    wait_for(lambda: wheel.node.diagnostic_status().message.count('another device') == 3, 3.0,
+             'all three named')
+    message = wheel.node.diagnostic_status().message
+    assert 'two SYNC producers' in message and 'two hosts with one node id' in message
+    assert 'a second host commands this drive' in message

@@ -58,6 +58,9 @@ PDO_DISABLED = 0x80000000
 SYNCHRONOUS_MAX = 240
 #: COB-ID of the SYNC object (CiA 301 default 0x1005 = 0x80)
 SYNC_COB_ID = 0x80
+#: CiA 301 predefined COB-IDs: a node's heartbeat (+ node id), its RPDO1 (+ node id)
+HEARTBEAT_BASE = 0x700
+RPDO1_BASE = 0x200
 #: the newest active EMCYs kept per node (the driver shows the last one)
 ACTIVE_EMCY_KEPT = 8
 #: the longest SDO upload the driver accepts (its values are 1..4 bytes; a
@@ -279,13 +282,21 @@ class MalformedFrames:
 
 
 class GuardedNetwork(canopen.Network):
-    """``canopen.Network`` that hands a frame the library raises on to ``malformed``."""
+    """``canopen.Network`` that hands a frame the library raises on to ``malformed``.
+
+    It also counts frames only this host should send (``watch``): heard from the
+    bus, another device sends them (this process does not hear its own).
+    """
 
     def __init__(self, bus: Any = None) -> None:
         super().__init__(bus)
         self.malformed = MalformedFrames()
+        self.watch: frozenset[int] = frozenset()    # COB-IDs only this host sends
+        self.foreign: dict[int, int] = {}           # such COB-ID -> frames heard
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if can_id in self.watch:
+            self.foreign[can_id] = self.foreign.get(can_id, 0) + 1
         try:
             super().notify(can_id, data, timestamp)
         except Exception as exc:  # noqa: BLE001 - whatever a callback raises on bad bytes
@@ -642,12 +653,47 @@ class CanopenTransport(Transport):
 
     @property
     def link_notes(self) -> tuple[str, ...]:
-        """A bit rate asked of an interface that takes none is not applied: say so."""
+        """What the channel shows is wrong with its set-up (diagnostics WARN).
+
+        A bit rate asked of an interface that takes none, and frames only this host
+        should send coming from another device: a second SYNC producer, a second
+        host on this host's node id, a second host commanding one of these drives.
+        """
+        notes = []
         if self.bitrate and self.interface in BITRATE_NOT_TAKEN:
-            return (f"transport.bitrate {self.bitrate} is not applied: python-can's "
-                    f'{self.interface} interface keeps the bit rate it has (socketcan: '
-                    f'ip link set {self.channel_name} type can bitrate {self.bitrate})',)
-        return ()
+            notes.append(f"transport.bitrate {self.bitrate} is not applied: python-can's "
+                         f'{self.interface} interface keeps the bit rate it has (socketcan: '
+                         f'ip link set {self.channel_name} type can bitrate {self.bitrate})')
+        channel = self.channel
+        network = channel.network if channel is not None else None
+        for cob_id, count in sorted(getattr(network, 'foreign', {}).items()):
+            notes.append(self._foreign_note(cob_id, count))
+        return tuple(note for note in notes if note)
+
+    def _foreign_note(self, cob_id: int, count: int) -> str:
+        heard = f'{count} heard on {self.description}'
+        if cob_id == SYNC_COB_ID and self.sync_producer:
+            return (f'another device sends SYNC ({heard}): two SYNC producers (a second host '
+                    'or process?); transport.sync_producer false on all but one')
+        if cob_id == HEARTBEAT_BASE + self.host_node_id:
+            return (f'another device sends heartbeats as node {self.host_node_id}, this '
+                    f"host's transport.host_node_id ({heard}): two hosts with one node id")
+        unit = cob_id - RPDO1_BASE
+        if unit in self._links:
+            return (f'another device sends RPDO1 to node {unit} ({heard}): a second host '
+                    'commands this drive')
+        return ''
+
+    def _watch_foreign(self) -> None:
+        """Tell the channel which frames only this host sends (see ``link_notes``)."""
+        network = self.channel.network if self.channel is not None else None
+        if not isinstance(network, GuardedNetwork):
+            return
+        mine = {HEARTBEAT_BASE + self.host_node_id} | \
+            {RPDO1_BASE + unit for unit in self._links}
+        if self.sync_producer:
+            mine.add(SYNC_COB_ID)
+        network.watch = network.watch | mine
 
     # --- nodes and the channel --------------------------------------------------------
 
@@ -686,6 +732,7 @@ class CanopenTransport(Transport):
         except TransportError:
             self.stats.connect_failures += 1
             raise
+        self._watch_foreign()
 
     def close(self) -> None:
         """Close every node of this transport and leave the channel (idempotent)."""
