@@ -604,3 +604,11 @@ def test_a_bus_drive_takes_its_drive_class_settings():
     document['drives']['left']['drive.objectset'] = 'ds402'
     with pytest.raises(ParameterError, match="unknown setting 'drive.objectset'"):
         parse_bus_config(document)
+
+
+def test_drives_behind_one_tcp_gateway_need_not_share_a_serial_framing():
+    """Their factory baud rates differ, but a TCP link has none to agree on."""
+    document = {'bus': {'transport.type': 'modbus_tcp', 'transport.host': '127.0.0.1'},
+                'drives': {'a': {'drive.profile': 'imo_hd2', 'transport.unit_id': 1},
+                           'b': {'drive.profile': 'boneng_am', 'transport.unit_id': 2}}}
+    assert len(Bus(parse_bus_config(document)).controllers) == 2

@@ -180,10 +180,13 @@ class Bus:
         """
         links = {entry.key: link_settings({**config.settings, **entry.settings})
                  for entry in config.drives}
+        # only what the transport takes (a TCP link has no baud rate to agree on)
+        names = {p.name for p in load_transport_class(
+            str(config.settings.get('transport.type', 'modbus_rtu'))).parameters}
         first = config.drives[0].key
         for key, link in links.items():
-            differ = sorted(name for name in link.keys() | links[first].keys()
-                            if name != 'unit_id' and link.get(name) != links[first].get(name))
+            differ = sorted(name for name in names
+                            if link.get(name) != links[first].get(name))
             if differ:
                 raise ParameterError(
                     f'drives {first} and {key} differ in their factory link settings ('
