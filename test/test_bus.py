@@ -519,13 +519,15 @@ def test_drives_of_one_line_must_agree_on_its_factory_framing():
     assert Bus(parse_bus_config(document)).transport.description.endswith('@19200-8N1')
 
 
-def bus_node_of(ros_context, tmp_path, document: dict, namespace: str = '/', **overrides):
+def bus_node_of(ros_context, tmp_path, document: dict, namespace: str = '/',
+                command_line: tuple[str, ...] = (), **overrides):
     """Return a managed bus_node of ``document`` (nothing opened before configure)."""
     from vfd_ros2.ros.bus_node import ManagedBusNode
     path = tmp_path / 'bus.yaml'
     path.write_text(yaml.safe_dump(document))
     try:
-        return ManagedBusNode(context=ros_context, namespace=namespace, parameter_overrides=[
+        return ManagedBusNode(context=ros_context, namespace=namespace,
+                              command_line=command_line, parameter_overrides=[
             Parameter('config_file', value=str(path)),
             *(Parameter(k, value=v) for k, v in overrides.items())])
     except ParameterError as exc:
@@ -612,3 +614,22 @@ def test_drives_behind_one_tcp_gateway_need_not_share_a_serial_framing():
                 'drives': {'a': {'drive.profile': 'imo_hd2', 'transport.unit_id': 1},
                            'b': {'drive.profile': 'boneng_am', 'transport.unit_id': 2}}}
     assert len(Bus(parse_bus_config(document)).controllers) == 2
+
+
+def test_bus_node_refuses_a_params_file_section_for_one_of_its_drives(ros_context, tmp_path):
+    """/x/left/drive: {max_velocity: 1.0} in a params file reached no drive, unnamed."""
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'/x/left/drive': {'ros__parameters': {
+        'max_velocity': 1.0}}, '/other_node': {'ros__parameters': {'x': 1}}}))
+    line = ('bus_node', '--ros-args', '--params-file', str(params))
+    with pytest.raises(ParameterError, match=f'params file {params}: section /x/left/drive is '
+                                             'for drive node /x/left/drive'):
+        bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'), command_line=line)
+    params.write_text(yaml.safe_dump({'/x/*/drive': {'ros__parameters': {'a': 1}}}))
+    with pytest.raises(ParameterError, match=r'section /x/\*/drive is for drive node'):
+        bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'), command_line=line)
+    params.write_text(yaml.safe_dump({'/other_node': {'ros__parameters': {'x': 1}}}))
+    node = bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
+                       command_line=line)
+    for each in (*node.drive_nodes, node):
+        each.destroy_node()

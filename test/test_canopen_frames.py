@@ -7,6 +7,7 @@ printed frames (test/vectors/kinco_ec_frames.yaml, sdo_frames).
 
 from __future__ import annotations
 
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -247,20 +248,37 @@ def test_no_sync_where_the_drive_is_event_driven_or_another_device_produces_it(c
     finally:
         drive.close()
         sim_bus.stop()
+    # another device produces SYNC (every 20 ms): the drive's TPDOs come on it, and the
+    # host sends none of its own
     other = f'{channel}b'
     twin = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)
     sim_bus = SimulatedCanBus([twin], other).start()
     sniffer_b = Sniffer(other)
-    drive, transport = configured_cia402(other, sync_producer=False)
+    producer = can.Bus(interface='virtual', channel=other)
+    produced, producing = [0], threading.Event()
+
+    def produce() -> None:
+        while not producing.wait(0.02):
+            producer.send(can.Message(arbitration_id=0x80, data=b'', is_extended_id=False))
+            produced[0] += 1
+    thread = threading.Thread(target=produce, daemon=True)
+    thread.start()
     try:
-        transport.transmit(1, 1, [0x0006, 0])
-        transport.end_command_burst()
-        time.sleep(0.05)
-        assert transport.syncs == 0
+        drive, transport = configured_cia402(other, sync_producer=False)
+        try:
+            transport.transmit(1, 1, [0x0006, 0])
+            transport.end_command_burst()
+            time.sleep(0.05)
+            assert transport.syncs == 0
+        finally:
+            drive.close()
     finally:
-        drive.close()
+        producing.set()
+        thread.join(1.0)
+        producer.shutdown()
         sim_bus.stop()
-    assert not any(cob == 0x80 for cob, _ in sniffer.frames + sniffer_b.frames)
+    assert not any(cob == 0x80 for cob, _ in sniffer.frames)
+    assert sum(cob == 0x80 for cob, _ in sniffer_b.frames) == produced[0] > 0
     sniffer.close()
     sniffer_b.close()
 

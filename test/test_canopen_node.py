@@ -554,11 +554,16 @@ def test_synchronous_pdos_without_a_sync_producer_are_not_shown_as_live(make_can
     Its status (read once at connect) used to be shown online for ever, a drive
     started from elsewhere reported as standing still.
     """
-    h = make_can_harness(node_parameters={'transport.sync_producer': False})
+    h = make_can_harness(online=False, node_parameters={'transport.sync_producer': False})
     wheel = h.wheels[1]
-    status = wheel.wait_status(lambda s: 'sync_producer is false' in s.stop_reason, 6.0,
-                               'no TPDO named, with its likely cause')
-    assert 'no TPDO1 from node 1' in status.stop_reason and not status.online
+    wheel.wait_status(lambda s: 'sync_producer is false' in s.stop_reason, 6.0,
+                      'no TPDO named, with its likely cause')
+    first = len(wheel.statuses)
+    time.sleep(3.0)             # reconnects come and fail: never online in between
+    later = wheel.statuses[first:]
+    assert len(later) > 50 and not any(s.online for s in later), \
+        sum(s.online for s in later)
+    assert 'no TPDO1 from node 1' in later[-1].stop_reason
 
 
 def test_canopen_settings_that_cannot_work_are_refused_at_start():
@@ -576,6 +581,8 @@ def test_canopen_settings_that_cannot_work_are_refused_at_start():
                                              'heartbeat periods'):
         build_controller({**base, 'transport.heartbeat_ms': 1000,
                           'transport.heartbeat_timeout': 0.1})
+    build_controller({**base, 'transport.heartbeat_ms': 100,       # 1.5 periods: the least
+                      'transport.heartbeat_timeout': 0.15})
     controller = build_controller(base)
     with pytest.raises(ParameterError, match='beyond its range'):
         controller.reconfigure(max_velocity=1e6)

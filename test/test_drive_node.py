@@ -506,5 +506,6 @@ def test_misspelt_parameters_refuse_the_start_others_are_only_named(ros_context)
             message = str(exc)
         gc.collect()        # the refused node, held by the traceback, lets go of the context
         assert why in message, message
-    shared = node(robot_radius=0.3)     # a params file shared by many nodes: only named
+    # a params file shared with diff_drive (config/diff_drive_sim_agv.yaml): only named
+    shared = node(robot_radius=0.3, max_wheel_velocity=5.0, publish_rate=50.0)
     shared.destroy_node()

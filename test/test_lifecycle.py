@@ -12,7 +12,7 @@ import time
 
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.executors import SingleThreadedExecutor
@@ -78,6 +78,7 @@ def test_drive_every_transition_at_the_simulated_drive(managed):
     h = managed(auto_enable=True)
     node = f'{h.namespace}/drive'
     assert state(h.tester, node) == State.PRIMARY_STATE_UNCONFIGURED
+    h.wait_status(lambda s: s.stop_reason == LINK_CLOSED, 2.0, 'unconfigured from the start')
     h.stream(2.0)                                    # a planner already commanding
     assert h.sim.requests == 0, 'unconfigured: the link is not even opened'
     reply = h.trigger('enable')
@@ -241,6 +242,14 @@ def test_managed_bus_moves_every_drive_through_the_transitions(ros_context, tmp_
     try:
         assert state(tester, '/mb/bus') == State.PRIMARY_STATE_UNCONFIGURED
         assert all(sim.requests == 0 for sim in sims)
+        # unconfigured: the link is closed on purpose, said so; no comm-loss ERROR
+        assert all(c.state.stop_reason == LINK_CLOSED for c in bus.bus.controllers.values())
+        diagnostics: list[DiagnosticArray] = []
+        tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 10)
+        wait_for(lambda: any(s.name == 'mb/bus: bus rs485_0' for d in diagnostics
+                             for s in d.status), 3.0, 'the bus on /diagnostics')
+        entry = next(s for d in diagnostics for s in d.status if s.name == 'mb/bus: bus rs485_0')
+        assert entry.level == DiagnosticStatus.STALE and entry.message == LINK_CLOSED, entry
         assert change(tester, '/mb/bus', Transition.TRANSITION_CONFIGURE)
         assert all(c.state.online for c in bus.bus.controllers.values())
         for _ in range(20):

@@ -138,9 +138,12 @@ class Bus:
         shared = load_shared(first_values)
         self.transport: Transport = build_transport(first_values)
         for entry in config.drives:
-            self.controllers[entry.key] = build_controller(
-                {**config.settings, **entry.settings},
-                transport=self.transport if shared or entry is config.drives[0] else None)
+            try:
+                self.controllers[entry.key] = build_controller(
+                    {**config.settings, **entry.settings},
+                    transport=self.transport if shared or entry is config.drives[0] else None)
+            except (ParameterError, TransportError) as exc:     # the same kind, named
+                raise type(exc)(f'drive {entry.key}: {exc}') from exc
         self._all = tuple(self.controllers.values())   # fixed from here on
         self.transports = list({id(c.drive.transport): c.drive.transport
                                 for c in self.controllers.values()}.values())

@@ -6,6 +6,7 @@ import logging
 import os
 import threading
 import time
+import traceback
 from typing import Callable
 
 from ..protocol.linux_thread import name_os_thread
@@ -14,6 +15,8 @@ log = logging.getLogger(__name__)
 
 #: s between two log lines of the same repeating loop error
 LOOP_ERROR_LOG_PERIOD = 10.0
+#: kinds of loop error remembered for that (more: the oldest are forgotten, all at once)
+LOOP_ERROR_KINDS = 32
 
 
 class CycleLoop:
@@ -95,17 +98,21 @@ class CycleLoop:
             call()
         except Exception as exc:  # noqa: BLE001 - the loop must survive anything
             self.errors += 1
-            # Each kind of error with its traceback once; a repeat (every cycle, say)
-            # as one line at most every LOOP_ERROR_LOG_PERIOD, with its count.
-            kind = f'{type(exc).__name__}: {exc}'
+            # Each kind of error (its type and where it was raised: the text may carry
+            # a time or a value) with its traceback once; a repeat (every cycle, say) as
+            # one line at most every LOOP_ERROR_LOG_PERIOD, with its count.
+            where = traceback.extract_tb(exc.__traceback__)[-1]
+            kind = f'{type(exc).__name__} at {where.filename}:{where.lineno}'
             now = time.monotonic()
             seen = self._error_kinds.get(kind)
             if seen is None:
+                if len(self._error_kinds) >= LOOP_ERROR_KINDS:
+                    self._error_kinds.clear()       # bounded: forget the old ones
                 self._error_kinds[kind] = [now, 0]
                 log.exception('%s: loop error: %s', self.name, exc)
             elif now - seen[0] >= LOOP_ERROR_LOG_PERIOD:
-                log.error('%s: loop error again (%d more times): %s', self.name, seen[1] + 1,
-                          kind)
+                log.error('%s: loop error again (%d more times, %s), last: %s', self.name,
+                          seen[1] + 1, kind, exc)
                 seen[:] = [now, 0]
             else:
                 seen[1] += 1

@@ -150,7 +150,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self.spec = profile.canopen
         heartbeat = (transport.heartbeat_ms or self.spec.heartbeat_ms) / 1000.0
         if transport.heartbeat_timeout and heartbeat and \
-                transport.heartbeat_timeout < HEARTBEAT_TIMEOUT_PERIODS_MIN * heartbeat:
+                transport.heartbeat_timeout < HEARTBEAT_TIMEOUT_PERIODS_MIN * heartbeat - 1e-9:
             raise ParameterError(
                 f'transport.heartbeat_timeout {transport.heartbeat_timeout:g} s is shorter than '
                 f'{HEARTBEAT_TIMEOUT_PERIODS_MIN:g} heartbeat periods ({heartbeat * 1000:g} ms: '
@@ -316,8 +316,34 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._tpdo_periods = self._tpdo_rates()
         self._tpdo_polls.clear()
         self._configured_at = time.monotonic()
+        if not t.sync_producer and spec.transmission_type <= SYNCHRONOUS_MAX:
+            self._await_first_tpdos()
         self._configured = True
         return problems
+
+    def _await_first_tpdos(self) -> None:
+        """Wait for the first synchronous TPDOs, sent on another device's SYNC.
+
+        Without them the values read over SDO at connect would be shown as the
+        drive's status until the supervision noticed, and after each reconnect
+        again. Raises CommTimeout (the connect fails, the drive stays offline).
+        """
+        wait = TPDO_PERIODS_MISSED * max(self._tpdo_periods.values(), default=0.0)
+        deadline = self._configured_at + wait
+        t = self.transport
+        while True:
+            for number in self._tpdo_periods:       # (what is heard is noted on reading)
+                t.received(self.unit_id, number)
+            missing = [number for number in self._tpdo_periods
+                       if (t.tpdo_heard(self.unit_id, number) or 0.0) <= self._configured_at]
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                t.count(self.unit_id, 'timeouts')
+                raise CommTimeout(f'no TPDO{missing[0]} from node {self.unit_id} within '
+                                  f'{wait:.2f} s of connecting: transport.sync_producer is '
+                                  'false; is another device sending SYNC?')
+            time.sleep(0.01)
 
     def _tpdo_rates(self) -> dict[int, float]:
         """Return the longest time between two TPDOs, for each one sent at a known rate.

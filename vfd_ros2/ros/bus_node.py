@@ -17,7 +17,8 @@ commands for its drives' joint names and publish their joint states together
 
 from __future__ import annotations
 
-from typing import Any
+import sys
+from typing import Any, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
@@ -33,13 +34,23 @@ from .executable import CONFIGURATION_ERRORS, run_node
 from .joint_topics import JointCommandBridge
 from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import bus_diagnostic_name
-from .parameters import LiveParameters, check_value, descriptor, unknown_overrides
+from .parameters import (
+    LiveParameters,
+    check_value,
+    descriptor,
+    params_files,
+    sections_for,
+    unknown_overrides,
+)
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
-                   drives_online: int, drives: int) -> DiagnosticStatus:
+                   drives_online: int, drives: int, closed: str = '') -> DiagnosticStatus:
+    """Return the bus's /diagnostics entry; ``closed``: why the host closed its link."""
     status = DiagnosticStatus(name=name, hardware_id=hardware_id)
-    if drives_online == 0:
+    if closed:          # a managed bus unconfigured: no data, not a comm loss
+        status.level, status.message = DiagnosticStatus.STALE, closed
+    elif drives_online == 0:
         status.level, status.message = DiagnosticStatus.ERROR, 'no drive answers'
     elif drives_online < drives:
         status.level = DiagnosticStatus.WARN
@@ -56,8 +67,13 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
 
 
 class BusNode(Node):
-    def __init__(self, node_name: str = 'bus', managed: bool = False, **kwargs: Any) -> None:
-        """Serve one link and a drive node per drive; ``managed``: see ``ManagedBusNode``."""
+    def __init__(self, node_name: str = 'bus', managed: bool = False,
+                 command_line: Sequence[str] = (), **kwargs: Any) -> None:
+        """Serve one link and a drive node per drive; ``managed``: see ``ManagedBusNode``.
+
+        ``command_line``: the process's arguments, whose params files are checked for
+        sections meant for the drives' nodes (they reach none).
+        """
         super().__init__(node_name, **kwargs)
         self.drive_nodes: list[DriveNode] = []
         try:
@@ -103,6 +119,7 @@ class BusNode(Node):
                     raise ParameterError(f'drives {names[name]} and {entry.key} are both {name}: '
                                          'give each drive its own namespace')
                 names[name] = entry.key
+                self._refuse_sections_for(name, command_line)
                 try:
                     # use_global_arguments=False: a launch file's __ns/__node remaps are meant
                     # for the bus node, not for the drives' nodes (the bus file names them).
@@ -150,6 +167,23 @@ class BusNode(Node):
             self.get_logger().error(f'parameters given but not known to bus_node, not applied '
                                     f'(misspelt?): {", ".join(unknown)}')
 
+    def _refuse_sections_for(self, drive: str, command_line: Sequence[str]) -> None:
+        """Refuse a params file section meant for drive node ``drive``: it reaches none.
+
+        A drive's node takes its settings from the bus file only (it ignores the
+        process's arguments: a launch file's remaps are the bus node's). Sections that
+        match the bus node too (``/**``) are checked as its own parameters.
+        """
+        own = self.get_fully_qualified_name()
+        for path in params_files(command_line):
+            meant = [key for key in sections_for(path, drive)
+                     if key not in sections_for(path, own)]
+            if meant:
+                raise ParameterError(
+                    f'params file {path}: section {meant[0]} is for drive node {drive}, '
+                    'which takes its settings from the bus file only: put them there '
+                    f'({self.get_parameter("config_file").value})')
+
     def _schedule_publishing(self) -> None:
         """One timer per distinct rate serves every drive (again after a rate changed).
 
@@ -188,10 +222,11 @@ class BusNode(Node):
             array.status = [node.diagnostic_status() for node in group]
             if with_bus:
                 states = [c.state for c in self.bus.controllers.values()]
+                closed = states[0].link_closed if all(s.link_closed for s in states) else ''
                 array.status.append(bus_diagnostic(
                     bus_diagnostic_name(self.get_fully_qualified_name(), self.config.name),
                     self.bus.transport.description, self.bus.statistics(),
-                    sum(s.online for s in states), len(states)))
+                    sum(s.online for s in states), len(states), closed))
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'bus diagnostics failed: {exc}', throttle_duration_sec=5.0)
@@ -216,6 +251,7 @@ class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
             self.get_logger().error, self.bus.start, self.bus.shutdown,
             {node.get_fully_qualified_name(): (node.controller, self._gate(node))
              for node in self.drive_nodes})
+        self.transitions.mark_unconfigured()       # as it starts: unconfigured
 
     @staticmethod
     def _gate(node: DriveNode):
@@ -227,9 +263,10 @@ class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
 def make_bus_node(args: list[str] | None = None, **kwargs: Any) -> BusNode:
     """Return the node the command line asks for: plain, or managed (and autostarted)."""
     options = parse_options(args)
+    command_line = args if args is not None else sys.argv
     if not options.managed:
-        return BusNode(**kwargs)
-    node = ManagedBusNode(**kwargs)
+        return BusNode(command_line=command_line, **kwargs)
+    node = ManagedBusNode(command_line=command_line, **kwargs)
     if options.autostart:
         autostart(node)
     return node

@@ -68,6 +68,10 @@ from .parameters import LiveParameters, check_value, descriptor, unknown_overrid
 
 #: the prefixes of this node's parameter names: an unknown one with them is a misspelling
 OUR_PREFIXES = ('transport.', 'drive.', 'motor.', 'position.')
+#: difflib's similarity from which an unknown name is taken for a misspelt one of ours
+#: (comand_timeout 0.97, gear_ration 0.95; diff_drive's max_wheel_velocity against
+#: max_velocity, 0.8, is another node's in a shared params file)
+MISSPELT_CUTOFF = 0.9
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -181,7 +185,7 @@ class DriveNode(Node):
         if not unknown:
             return
         known = list(self._parameters)
-        meant = {name: difflib.get_close_matches(name, known, n=1, cutoff=0.8)
+        meant = {name: difflib.get_close_matches(name, known, n=1, cutoff=MISSPELT_CUTOFF)
                  for name in unknown}
         ours = [name for name in unknown if meant[name] or name.startswith(OUR_PREFIXES)]
         if ours:
@@ -424,6 +428,7 @@ class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
         self.transitions = DriveTransitions(
             self.get_logger().error, self.controller.start, self.controller.shutdown,
             {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
+        self.transitions.mark_unconfigured()       # as it starts: unconfigured
 
     def _allow_motion(self, allowed: bool) -> None:
         self.motion_allowed = allowed

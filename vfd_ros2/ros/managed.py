@@ -117,11 +117,14 @@ class DriveTransitions:
             # until activate.
             controller.intent.held = '' if allowed else NOT_ACTIVE
 
+    def mark_unconfigured(self) -> None:
+        """Have every drive's ~/status say its link is closed (no loop runs it now)."""
+        for controller, _ in self._gates.values():
+            controller.mark_closed(LINK_CLOSED)
+
     def _close(self) -> None:
         self._stop_loop()            # the loop's end writes the stop, then closes the link
-        for controller, _ in self._gates.values():
-            # ~/status says offline, and why, not the last cycle's state
-            controller.mark_closed(LINK_CLOSED)
+        self.mark_unconfigured()     # ~/status says offline, and why, not the last cycle's
 
     def configure(self) -> TransitionCallbackReturn:
         self._allow(False)

@@ -9,8 +9,10 @@ callback validates and applies it (``LiveParameters``).
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Iterable
+import re
+from typing import Any, Callable, Iterable, Sequence
 
+import yaml
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -65,6 +67,43 @@ def unknown_overrides(node: Node) -> list[str]:
     ``Node._parameter_overrides``: there is no public accessor.)
     """
     return sorted(set(node._parameter_overrides) - set(node._parameters))
+
+
+def params_files(argv: Sequence[str]) -> list[str]:
+    """Return the ``--params-file`` paths among the ROS arguments of a command line."""
+    files, ros = [], False
+    for index, token in enumerate(argv):
+        if token == '--ros-args':
+            ros = True
+        elif token == '--':
+            ros = False
+        elif ros and token == '--params-file' and index + 1 < len(argv):
+            files.append(argv[index + 1])
+    return files
+
+
+def sections_for(path: str, node: str) -> list[str]:
+    """Return the sections of params file ``path`` whose node pattern matches ``node``.
+
+    ``node`` is a fully qualified name; a section is a node name, '/' first or not,
+    with rcl's wildcards (``*`` one name part, ``**`` any). A file that does not
+    parse has no sections here (rcl refuses it anyway).
+    """
+    try:
+        with open(path, encoding='utf-8') as stream:
+            document = yaml.safe_load(stream)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return []
+    if not isinstance(document, dict):
+        return []
+    found = []
+    for key in document:
+        parts = str(key).strip('/').split('/')
+        pattern = '/'.join('.*' if part == '**' else '[^/]*' if part == '*' else re.escape(part)
+                           for part in parts)
+        if re.fullmatch(pattern, node.strip('/')):
+            found.append(str(key))
+    return found
 
 
 class LiveParameters:
