@@ -548,6 +548,18 @@ def test_bus_node_refuses_two_drives_in_one_namespace(ros_context, tmp_path):
         bus_node_of(ros_context, tmp_path, document)
 
 
+@pytest.mark.parametrize('field, value, why', [
+    ('name', 'bad name!', 'drive left: Invalid node name'),
+    ('namespace', '/agv/left wheel', 'drive left: Invalid namespace'),
+])
+def test_bus_node_refuses_a_drive_name_ros_cannot_take(ros_context, tmp_path, field, value,
+                                                       why):
+    document = bus_document('/dev/null', '/x')
+    document['drives']['left'][field] = value
+    with pytest.raises(ParameterError, match=why):
+        bus_node_of(ros_context, tmp_path, document)
+
+
 def test_bus_node_puts_drives_without_an_absolute_namespace_into_its_own(ros_context,
                                                                          tmp_path):
     robot = f'/r{uuid.uuid4().hex[:6]}'

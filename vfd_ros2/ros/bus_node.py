@@ -22,9 +22,12 @@ from typing import Any, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.exceptions import NameValidationException
 from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.validate_namespace import validate_namespace
+from rclpy.validate_node_name import validate_node_name
 
 from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
 from ..control.settings import SETTINGS
@@ -113,6 +116,11 @@ class BusNode(Node):
                 values['control_rate'] = 1.0 / self.bus.period
                 namespace = entry.namespace if entry.namespace.startswith('/') else \
                     f'{self.get_namespace().rstrip("/")}/{entry.namespace}'
+                try:        # before rclpy makes a node of them (it warns on its way out)
+                    validate_namespace(namespace)
+                    validate_node_name(entry.name)
+                except NameValidationException as exc:
+                    raise ParameterError(f'drive {entry.key}: {exc}') from exc
                 name = f'{namespace.rstrip("/")}/{entry.name}'
                 if name in names:
                     # one velocity command topic would move both motors
