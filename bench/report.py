@@ -416,10 +416,12 @@ BOUNDS = """### Targets and what bounds them
   and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 3.5 % with four drives and 6.5 % for a drive_node in the re-run of
-  section 5 at 2026-11-27 04:23 (0.12 % steal; 3.4 and 6.7 % in the full run of 02:47; 3.6
-  and 6.7 % at 02:20; 3.4-3.8 % and 5.8-6.9 % over six runs on 2026-11-26); half the
-  previous design's.**
+  drive_node) — not met: 4.0 % with four drives and 6.6 % for a drive_node in the re-run of
+  section 5 at 2026-11-27 07:28 (0.01 % steal). Four runs of those two cases that day,
+  of code within 0.5 % of the same bytecode steps per drive-cycle (8170-8205, section 5a),
+  gave 3.1-4.2 % and 6.5-7.3 %: this host's noise is as large as what is missing (3.5 and
+  6.5 % at 04:23, 3.4 and 6.7 % in the full run of 02:47, 3.4-3.8 % and 5.8-6.9 % over six
+  runs on 2026-11-26); half the previous design's.**
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
