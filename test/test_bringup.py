@@ -277,3 +277,5 @@ def test_loop_errors_are_logged_once_with_a_traceback_then_counted(caplog):
             loop._guarded(broken)
     assert loop.errors == 170
     assert len(caplog.records) == 1 and caplog.records[0].exc_info is not None
+    loop._tell_repeats(at_end=True)      # as the loop ends: the repeats are told, not lost
+    assert len(caplog.records) == 2 and '169 more times' in caplog.records[1].getMessage()

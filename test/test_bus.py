@@ -581,6 +581,11 @@ def test_bus_node_refuses_drive_settings_that_would_reach_no_drive(ros_context, 
                                              'bus_node .* would reach no drive'):
         bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
                     max_velocity=1.0, **{'transport.parity': 'E'})
+    # misspelt as well: as drive_node, refused, with what it reads as
+    with pytest.raises(ParameterError, match=r'comand_timeout \(did you mean command_timeout'
+                                             r'\?\) given to bus_node'):
+        bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
+                    comand_timeout=0.1)
 
 
 def test_a_profile_without_a_map_for_the_transport_is_refused():
@@ -590,8 +595,9 @@ def test_a_profile_without_a_map_for_the_transport_is_refused():
                                              'modbus_rtu'):
         build_controller({'drive.profile': 'cia402_velocity', 'transport.port': '/dev/null'})
     document = bus_document('/dev/null', '/x')
-    document['drives']['left']['drive.profile'] = 'cia402_velocity'
-    with pytest.raises(ParameterError, match='is for canopen, not modbus_rtu'):
+    document['drives']['right']['drive.profile'] = 'cia402_velocity'
+    with pytest.raises(ParameterError, match='drive right: profile cia402_velocity is for '
+                                             'canopen, not modbus_rtu'):
         Bus(parse_bus_config(document))
 
 

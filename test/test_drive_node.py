@@ -486,6 +486,7 @@ def test_misspelt_parameters_refuse_the_start_others_are_only_named(ros_context)
     import gc
     import uuid
 
+    import rclpy
     from rclpy.parameter import Parameter
 
     from vfd_ros2.errors import ParameterError
@@ -496,6 +497,7 @@ def test_misspelt_parameters_refuse_the_start_others_are_only_named(ros_context)
                                 context=ros_context, parameter_overrides=[
                                     Parameter(k, value=v) for k, v in parameters.items()])
 
+    probe = rclpy.create_node('probe', context=ros_context)
     for given, why in (({'comand_timeout': 0.1}, 'comand_timeout (did you mean '
                                                   'command_timeout?)'),
                        ({'transport.bitrat': 1}, 'unknown parameter(s) transport.bitrat')):
@@ -506,6 +508,39 @@ def test_misspelt_parameters_refuse_the_start_others_are_only_named(ros_context)
             message = str(exc)
         gc.collect()        # the refused node, held by the traceback, lets go of the context
         assert why in message, message
+    # gone from the graph with its lifecycle state machine (which holds the rcl node)
+    gc.disable()
+    try:
+        try:
+            node(comand_timeout=0.1)
+        except ParameterError:
+            pass
+        assert 'drive' not in probe.get_node_names()
+    finally:
+        gc.enable()
+        probe.destroy_node()
     # a params file shared with diff_drive (config/diff_drive_sim_agv.yaml): only named
     shared = node(robot_radius=0.3, max_wheel_velocity=5.0, publish_rate=50.0)
     shared.destroy_node()
+
+
+@pytest.mark.parametrize('action, state', [('stop', 'stopped'), ('disable', 'disabled')])
+def test_a_stop_asked_while_offline_holds_when_the_link_returns(make_harness, action, state):
+    """~/stop while the cable is out: its action never runs, but the stop must hold.
+
+    It was refused and forgotten: with the planner still commanding, the motor ran
+    again as soon as the link came back.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.sim.silent = True
+    h.wait_status(lambda s: not s.online, 3.0, 'offline')
+    reply = h.trigger(action)
+    assert not reply.success and f'the {action} is latched' in reply.message, reply.message
+    h.sim.silent = False
+    h.wait_status(lambda s: s.online and s.state == state, 5.0, f'back, {state}')
+    h.wait_cycles(30)
+    assert not h.sim.run_requested and h.sim.speed_rpm == 0.0, 'ran again by itself'
+    assert h.trigger('enable').success
+    h.wait_status(lambda s: s.running, 5.0, 'running after ~/enable')

@@ -520,3 +520,20 @@ def test_no_slaves_on_the_segment_is_a_clear_error(make_wheel):
     status = wheel.wait_status(lambda s: 'no EtherCAT slave answered' in s.stop_reason, 15.0,
                                'no slaves')
     assert not status.online
+
+
+def test_parameters_refused_as_commissioned_are_the_ones_this_transport_writes():
+    """Over EtherCAT the node writes the profile's EtherCAT start-up list, not Modbus's."""
+    from vfd_ros2.control.factory import build_controller
+    from vfd_ros2.errors import ParameterError
+    ec = build_controller({'drive.profile': 'imo_hd2', 'transport.type': 'ethercat',
+                           'transport.interface': 'eth9'})
+    with pytest.raises(ParameterError, match='P00.02 .* set to 3 at every connect'):
+        ec.check_parameter_write('P00.02', 0)
+    ec.check_parameter_write('P00.06', 8)       # Modbus's frequency channel: not written here
+    tcp = build_controller({'drive.profile': 'imo_hd2', 'transport.type': 'modbus_tcp'})
+    with pytest.raises(ParameterError, match='P00.06 .* set to 8 at every connect'):
+        tcp.check_parameter_write('P00.06', 0)
+    # the reaction to a comm timeout: 1 would keep the drive running when the host dies
+    with pytest.raises(ParameterError, match='P14.05 .* set to 0 at every connect'):
+        tcp.check_parameter_write('P14.05', 1)

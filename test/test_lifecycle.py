@@ -179,11 +179,12 @@ def test_configure_fails_while_the_drive_is_silent_and_errors_go_to_error_proces
     h.sim.silent = False
     assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
 
-    # A stop that cannot be verified in time (a 0.5 s ramp, stop_timeout 0.05 s) is an
-    # error: ErrorProcessing writes the stop, closes the link, ends unconfigured.
-    h.stream(2.0)
+    # A stop that cannot be verified in time (8 rad/s: a ramp down of ~0.3 s, stop_timeout
+    # 0.05 s) is an error: ErrorProcessing writes the stop, closes the link, ends
+    # unconfigured.
+    h.stream(8.0)
     assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
-    wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'running')
+    wait_for(lambda: at_speed(h.sim, 8.0), 6.0, 'running')
     h.node.controller.reconfigure(stop_timeout=0.05)
     assert not change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
     assert state(h.tester, node) == State.PRIMARY_STATE_UNCONFIGURED

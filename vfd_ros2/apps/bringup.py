@@ -122,11 +122,15 @@ def sim_wheels(directory: str = DEFAULT_DEMO_DIR, profile: str = 'boneng_am',
     return specs
 
 
+#: rad/s at a simulated wheel: the drives' max_velocity, and what diff_drive's limits derive from
+WHEEL_LIMIT = 5.0
+
+
 def _wheel_settings(wheel: str, index: int, gear_ratio: float) -> dict[str, Any]:
     return {
         'gear_ratio': gear_ratio,
         'invert_direction': index % 2 == 1,
-        'max_velocity': 5.0,
+        'max_velocity': WHEEL_LIMIT,
         'command_timeout': 0.5,
         # The drives' own comm-loss timeout: 1 s tolerates a loaded 2-core machine
         # running simulators and drivers side by side (0.3 s on a real robot).
@@ -184,6 +188,8 @@ def sim_agv(directory: str = DEFAULT_SIM_DIR, profile: str = 'boneng_am',
             'right_wheel_status_topic': f'/agv/{wheels[1]}/drive/status',
             'left_wheel_joint_states_topic': f'/agv/{wheels[0]}/joint_states',
             'right_wheel_joint_states_topic': f'/agv/{wheels[1]}/joint_states',
-            'use_stamped_vel': True, 'max_wheel_velocity': 5.0,
-            'max_linear_velocity': 5.0 * wheel_radius}),        # what the wheels can do
+            'use_stamped_vel': True, 'max_wheel_velocity': WHEEL_LIMIT,
+            # the twist within what the wheels can do: straight ahead, and on the spot
+            'max_linear_velocity': WHEEL_LIMIT * wheel_radius,
+            'max_angular_velocity': 2.0 * WHEEL_LIMIT * wheel_radius / track_width}),
     ]

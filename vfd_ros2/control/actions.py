@@ -179,6 +179,21 @@ class ServiceActions:
             raise ParameterError(f'unknown action {quote(name)}')
         return lambda: step(*args)
 
+    def latch(self, name: str) -> str:
+        """Hold what ``~/stop`` or ``~/disable`` asks from the moment it is asked.
+
+        Its action may never run (the drive offline, no loop serving): the drive
+        must still not run again when the link returns. Returns what is held ('' for
+        any other action).
+        """
+        if name == 'stop':
+            self.intent.stopped = True
+            return 'the stop is latched'
+        if name == 'disable':
+            self.intent.enabled = False
+            return 'the disable is latched'
+        return ''
+
     def _flag(self, name: str, fallback: bool) -> bool:
         return self._reading().flags.get(name, fallback)
 

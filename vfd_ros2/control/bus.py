@@ -19,7 +19,7 @@ from typing import Any, Callable, Mapping, Sequence
 import yaml
 
 from ..drives import drive_class_for
-from ..errors import ParameterError, TransportError
+from ..errors import ParameterError, TransportError, VfdError
 from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
 from .controller import DriveController
@@ -142,8 +142,8 @@ class Bus:
                 self.controllers[entry.key] = build_controller(
                     {**config.settings, **entry.settings},
                     transport=self.transport if shared or entry is config.drives[0] else None)
-            except (ParameterError, TransportError) as exc:     # the same kind, named
-                raise type(exc)(f'drive {entry.key}: {exc}') from exc
+            except VfdError as exc:
+                raise ParameterError(f'drive {entry.key}: {exc}') from exc
         self._all = tuple(self.controllers.values())   # fixed from here on
         self.transports = list({id(c.drive.transport): c.drive.transport
                                 for c in self.controllers.values()}.values())
@@ -181,8 +181,12 @@ class Bus:
         value; on one line every drive must have the same, or the line would run at
         whichever drive is listed first.
         """
-        links = {entry.key: link_settings({**config.settings, **entry.settings})
-                 for entry in config.drives}
+        links = {}
+        for entry in config.drives:
+            try:
+                links[entry.key] = link_settings({**config.settings, **entry.settings})
+            except VfdError as exc:
+                raise ParameterError(f'drive {entry.key}: {exc}') from exc
         # only what the transport takes (a TCP link has no baud rate to agree on)
         names = {p.name for p in load_transport_class(
             str(config.settings.get('transport.type', 'modbus_rtu'))).parameters}

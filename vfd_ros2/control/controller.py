@@ -34,7 +34,7 @@ from ..drives import Drive, HostLossProtection, Reading
 from ..errors import ParameterError, ProtocolException, TransportError, VfdError, quote
 from ..profiles import Parameter
 from ..protocol.scaling import SpeedUnit, VelocityScaling
-from .actions import ActionQueue, ServiceActions
+from .actions import NOT_SERVED, ActionQueue, ServiceActions
 from .joint import JointTracker, joint_config
 from .link import LinkSupervisor
 from .loop import CycleLoop
@@ -266,7 +266,8 @@ class DriveController:
     def _refused_while_driven(self, parameter: Parameter) -> str:
         """Return why the node refuses to write ``parameter`` itself ('' if it does not)."""
         if self.config.apply_commissioning:
-            for item in self.drive.profile.commissioning:
+            # what this drive writes at connect (an EtherCAT drive has its own list)
+            for item in getattr(self.drive, 'commissioning', self.drive.profile.commissioning):
                 if item.code == parameter.code:
                     return (f'it is set to {item.value:g} at every connect ({item.why}): '
                             'set apply_commissioning false to manage it yourself')
@@ -349,6 +350,16 @@ class DriveController:
         except ParameterError as exc:
             future: Future = Future()
             future.set_result(ActionResult(False, str(exc)))
+            return future
+        latched = self.services.latch(name)
+        if latched and (not self.link.online or not self._actions.serving):
+            # Not verified (nothing to ask), but held: the drive stays stopped when it
+            # comes back, whatever commands keep coming.
+            future = Future()
+            why = NOT_SERVED if not self._actions.serving else \
+                f'drive offline ({self.link.error or "not connected"})'
+            future.set_result(ActionResult(False, f'{why}: {latched}: it stays stopped when '
+                                                  'the link returns; ~/enable resumes'))
             return future
         return self._actions.submit(None if args else name, factory)
 

@@ -56,7 +56,8 @@ class CycleLoop:
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
         self.errors = 0
-        self._error_kinds: dict[str, list] = {}    # error text -> [last logged, repeats since]
+        self._error_kinds: dict[str, list] = {}    # error kind -> [last logged, repeats since]
+        self._repeats_untold = False    # some repeats counted and not logged yet
 
     def start(self) -> None:
         self._thread.start()
@@ -96,6 +97,8 @@ class CycleLoop:
     def _guarded(self, call: Callable[[], None]) -> None:
         try:
             call()
+            if self._repeats_untold:
+                self._tell_repeats()
         except Exception as exc:  # noqa: BLE001 - the loop must survive anything
             self.errors += 1
             # Each kind of error (its type and where it was raised: the text may carry
@@ -116,6 +119,22 @@ class CycleLoop:
                 seen[:] = [now, 0]
             else:
                 seen[1] += 1
+                self._repeats_untold = True
+
+    def _tell_repeats(self, at_end: bool = False) -> None:
+        """Log the repeats counted and not yet told, once their period is over.
+
+        An error that repeated a few times and stopped is told too (at the latest
+        when the loop ends), not only one that comes back after the period.
+        """
+        now = time.monotonic()
+        self._repeats_untold = False
+        for kind, seen in self._error_kinds.items():
+            if seen[1] and (at_end or now - seen[0] >= LOOP_ERROR_LOG_PERIOD):
+                log.error('%s: loop error again (%d more times, %s)', self.name, seen[1], kind)
+                seen[:] = [now, 0]
+            elif seen[1]:
+                self._repeats_untold = True
 
     def _run(self) -> None:
         name_os_thread(f'vfd {self.name}')
@@ -144,3 +163,5 @@ class CycleLoop:
                 if self._preempt is not None and not self._stop.is_set():
                     self._guarded(self._preempt)
         self._guarded(self._finish)
+        if self._repeats_untold:
+            self._tell_repeats(at_end=True)

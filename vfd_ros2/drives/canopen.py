@@ -328,7 +328,9 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         drive's status until the supervision noticed, and after each reconnect
         again. Raises CommTimeout (the connect fails, the drive stays offline).
         """
-        wait = TPDO_PERIODS_MISSED * max(self._tpdo_periods.values(), default=0.0)
+        # One trusted SYNC period: within a connect's time budget (a managed configure
+        # waits about 2 s), and short of a shutdown's wait for the loop.
+        wait = FOREIGN_SYNC_PERIOD
         deadline = self._configured_at + wait
         t = self.transport
         while True:
@@ -360,10 +362,11 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             if spec.transmission_type <= SYNCHRONOUS_MAX:
                 if self.transport.sync_producer and self._interval:
                     rates[number] = max(spec.transmission_type, 1) * self._interval
-                elif not self.transport.sync_producer:
+                elif not self.transport.sync_producer and spec.transmission_type >= 1:
                     # Another device's SYNC, at a rate not known here: at least this
                     # often, or its status would be shown for ever once it stopped.
-                    rates[number] = max(spec.transmission_type, 1) * FOREIGN_SYNC_PERIOD
+                    # (Type 0, acyclic, comes on a change only: not supervised.)
+                    rates[number] = spec.transmission_type * FOREIGN_SYNC_PERIOD
             elif spec.tpdo_event_timer_ms > 0:
                 rates[number] = spec.tpdo_event_timer_ms / 1000.0
         return rates

@@ -26,6 +26,7 @@ from ..errors import ParameterError, ProfileError, ProtocolException, TransportE
 from ..profiles import (
     NO_FAULT,
     CanObject,
+    CommissioningWrite,
     EmcyFault,
     FaultInfo,
     Parameter,
@@ -274,6 +275,11 @@ class EthercatDrive(DriveOnLink, ObjectDictionaryParameters):
         self.transport.write_outputs(self.unit_id, self._outputs(controlword, velocity_raw))
         self._last_controlword = controlword
         self.last_setpoint_raw = velocity_raw
+
+    @property
+    def commissioning(self) -> tuple[CommissioningWrite, ...]:
+        """What this drive writes at connect: the EtherCAT start-up list, not Modbus's."""
+        return tuple(self.spec.commissioning)
 
     def setpoint_beyond(self, velocity: float) -> str:
         """Return why ``velocity`` would be clamped in the target velocity ('' if not)."""

@@ -691,7 +691,8 @@ class Profile:
         raise ParameterError(
             f'unknown parameter {quote(key)} for profile {self.name} '
             '(use a function code such as those in the manual'
-            + (', an object as 0x6083 or 0x6083:00' if objects else '') + ', or a readable name)')
+            + (', an object as 0xINDEX or 0xINDEX:SUBINDEX' if objects else '')
+            + ', or a readable name)')
 
     def parameter_at(self, address: int) -> Parameter | None:
         code = self._by_address.get(address)

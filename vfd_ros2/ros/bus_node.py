@@ -31,7 +31,9 @@ from rclpy.validate_node_name import validate_node_name
 
 from ..control.bus import BUS_KEYS, Bus, BusStatistics, load_bus_config
 from ..control.settings import SETTINGS
+from ..drives import drive_class_for
 from ..errors import ParameterError
+from ..transports import load_transport_class
 from .drive_node import DriveNode, autostart
 from .executable import CONFIGURATION_ERRORS, run_node
 from .joint_topics import JointCommandBridge
@@ -41,6 +43,7 @@ from .parameters import (
     LiveParameters,
     check_value,
     descriptor,
+    meant_for,
     params_files,
     sections_for,
     unknown_overrides,
@@ -150,9 +153,7 @@ class BusNode(Node):
                                    f'{self.bus.transport.description}')
         except BaseException:
             # Refused (a bus file mistake): what was made so far goes, port unopened.
-            for node in self.drive_nodes:
-                node.destroy_node()
-            super().destroy_node()
+            self._release()
             raise
 
     def _refuse_drive_settings_given_here(self) -> None:
@@ -163,17 +164,26 @@ class BusNode(Node):
         without a word; anything else unknown is only reported.
         """
         unknown = unknown_overrides(self)
-        drive_settings = {s.name for s in SETTINGS}
-        misplaced = [name for name in unknown if name in drive_settings or
-                     name.startswith(('transport.', 'drive.'))]
+        transport = load_transport_class(str(self.config.settings.get('transport.type',
+                                                                      'modbus_rtu')))
+        drive_settings = {s.name for s in SETTINGS} | \
+            {f'transport.{p.name}' for p in transport.parameters} | \
+            {f'drive.{p.name}' for p in drive_class_for(transport).settings}
+        misplaced = meant_for(unknown, drive_settings | set(self._parameters))
         if misplaced:
             raise ParameterError(
-                f'{", ".join(misplaced)} given to bus_node (params file or -p) would reach no '
-                f'drive: set them per drive, or for the line, in the bus file '
+                f'{", ".join(misplaced.values())} given to bus_node (params file or -p) would '
+                f'reach no drive: set them per drive, or for the line, in the bus file '
                 f'({self.get_parameter("config_file").value})')
         if unknown:
-            self.get_logger().error(f'parameters given but not known to bus_node, not applied '
-                                    f'(misspelt?): {", ".join(unknown)}')
+            self.get_logger().warning(f'parameters given but not known to bus_node, not '
+                                      f'applied: {", ".join(unknown)}')
+
+    def _release(self) -> None:
+        """Destroy what was made of a node refused while it was being built."""
+        for node in self.drive_nodes:
+            node.destroy_node()
+        super().destroy_node()
 
     def _refuse_sections_for(self, drive: str, command_line: Sequence[str]) -> None:
         """Refuse a params file section meant for drive node ``drive``: it reaches none.

@@ -24,7 +24,6 @@ the executor.
 
 from __future__ import annotations
 
-import difflib
 import math
 from typing import Any, Callable
 
@@ -64,14 +63,13 @@ from .messages import (
     joint_state_message,
     status_message,
 )
-from .parameters import LiveParameters, check_value, descriptor, unknown_overrides
-
-#: the prefixes of this node's parameter names: an unknown one with them is a misspelling
-OUR_PREFIXES = ('transport.', 'drive.', 'motor.', 'position.')
-#: difflib's similarity from which an unknown name is taken for a misspelt one of ours
-#: (comand_timeout 0.97, gear_ration 0.95; diff_drive's max_wheel_velocity against
-#: max_velocity, 0.8, is another node's in a shared params file)
-MISSPELT_CUTOFF = 0.9
+from .parameters import (
+    LiveParameters,
+    check_value,
+    descriptor,
+    meant_for,
+    unknown_overrides,
+)
 
 FAULT_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                        reliability=ReliabilityPolicy.RELIABLE)
@@ -170,30 +168,28 @@ class DriveNode(Node):
                 f'driving {self.controller.drive.hardware_id} (profile {self.profile_name})')
         except BaseException:
             # Refused (a setting that cannot work): the node goes, nothing opened.
-            super().destroy_node()
+            self._release()
             raise
 
     def _refuse_misspelt_parameters(self) -> None:
         """Refuse given parameters this node does not know that look meant for it.
 
         rclpy drops unknown overrides: a misspelt ``comand_timeout`` would leave the
-        watchdog at its default without a word. One close to a known name, or with
-        a prefix of ours (transport., drive., motor., position.), refuses the start;
-        any other (a params file shared by many nodes) is only named.
+        watchdog at its default without a word. Any other (a params file shared by
+        several nodes) is named in a warning.
         """
         unknown = unknown_overrides(self)
-        if not unknown:
-            return
-        known = list(self._parameters)
-        meant = {name: difflib.get_close_matches(name, known, n=1, cutoff=MISSPELT_CUTOFF)
-                 for name in unknown}
-        ours = [name for name in unknown if meant[name] or name.startswith(OUR_PREFIXES)]
+        ours = meant_for(unknown, self._parameters)
         if ours:
-            raise ParameterError('unknown parameter(s) ' + ', '.join(
-                f'{name}' + (f' (did you mean {meant[name][0]}?)' if meant[name] else '')
-                for name in ours) + ': nothing started')
-        self.get_logger().warning(f'parameters given but not known to drive_node, not applied: '
-                                  f'{", ".join(unknown)}')
+            raise ParameterError(f'unknown parameter(s) {", ".join(ours.values())}: '
+                                 'nothing started')
+        if unknown:
+            self.get_logger().warning(f'parameters given but not known to drive_node, not '
+                                      f'applied: {", ".join(unknown)}')
+
+    def _release(self) -> None:
+        """Destroy what rclpy made of a node refused while it was being built."""
+        super().destroy_node()
 
     def _declare(self, name: str, default: Any, description: str,
                  minimum: float | None = None, maximum: float | None = None,

@@ -224,3 +224,8 @@ class ManagedTransitions:
         # rclpy's LifecycleNode leaves its state machine (which holds the rcl node, and
         # with it the DDS participant) alive: release it too.
         self._state_machine.destroy_when_not_in_use()
+
+    def _release(self) -> None:
+        """Destroy a node refused while being built, its state machine too (as above)."""
+        super()._release()
+        self._state_machine.destroy_when_not_in_use()

@@ -8,6 +8,7 @@ callback validates and applies it (``LiveParameters``).
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from typing import Any, Callable, Iterable, Sequence
@@ -67,6 +68,33 @@ def unknown_overrides(node: Node) -> list[str]:
     ``Node._parameter_overrides``: there is no public accessor.)
     """
     return sorted(set(node._parameter_overrides) - set(node._parameters))
+
+
+#: difflib's similarity from which an unknown name is taken for a misspelt known one
+#: (comand_timeout 0.97, gear_ration 0.95; diff_drive's max_wheel_velocity against
+#: max_velocity, 0.8, is another node's in a shared params file)
+MISSPELT_CUTOFF = 0.9
+
+
+def meant_for(unknown: Iterable[str], known: Iterable[str]) -> dict[str, str]:
+    """Return the unknown names that look meant as known ones: name -> how it reads.
+
+    One known exactly (given where it reaches nothing), one close to a known name
+    (misspelt: ``comand_timeout``), or one under a group of the known dotted names
+    (``transport.bitrat``). The others belong to other nodes (a shared params file).
+    """
+    known = set(known)
+    groups = tuple({name.split('.')[0] + '.' for name in known if '.' in name})
+    meant = {}
+    for name in unknown:
+        close = difflib.get_close_matches(name, known, n=1, cutoff=MISSPELT_CUTOFF)
+        if name in known:
+            meant[name] = name
+        elif close:
+            meant[name] = f'{name} (did you mean {close[0]}?)'
+        elif name.startswith(groups):
+            meant[name] = name
+    return meant
 
 
 def params_files(argv: Sequence[str]) -> list[str]:

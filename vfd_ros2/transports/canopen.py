@@ -58,9 +58,10 @@ PDO_DISABLED = 0x80000000
 SYNCHRONOUS_MAX = 240
 #: COB-ID of the SYNC object (CiA 301 default 0x1005 = 0x80)
 SYNC_COB_ID = 0x80
-#: CiA 301 predefined COB-IDs: a node's heartbeat (+ node id), its RPDO1 (+ node id)
-HEARTBEAT_BASE = 0x700
+#: CiA 301 predefined COB-ID of a node's RPDO1 (+ node id)
 RPDO1_BASE = 0x200
+#: s a frame only this host should send, heard from another device, stays reported
+FOREIGN_FRAMES_SHOWN = 10.0
 #: the newest active EMCYs kept per node (the driver shows the last one)
 ACTIVE_EMCY_KEPT = 8
 #: the longest SDO upload the driver accepts (its values are 1..4 bytes; a
@@ -292,11 +293,12 @@ class GuardedNetwork(canopen.Network):
         super().__init__(bus)
         self.malformed = MalformedFrames()
         self.watch: frozenset[int] = frozenset()    # COB-IDs only this host sends
-        self.foreign: dict[int, int] = {}           # such COB-ID -> frames heard
+        self.foreign: dict[int, tuple[int, float]] = {}   # -> (frames heard, last when)
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if can_id in self.watch:
-            self.foreign[can_id] = self.foreign.get(can_id, 0) + 1
+            count = self.foreign.get(can_id, (0, 0.0))[0] + 1
+            self.foreign[can_id] = (count, time.monotonic())
         try:
             super().notify(can_id, data, timestamp)
         except Exception as exc:  # noqa: BLE001 - whatever a callback raises on bad bytes
@@ -656,8 +658,9 @@ class CanopenTransport(Transport):
         """What the channel shows is wrong with its set-up (diagnostics WARN).
 
         A bit rate asked of an interface that takes none, and frames only this host
-        should send coming from another device: a second SYNC producer, a second
-        host on this host's node id, a second host commanding one of these drives.
+        sends coming from another device in the last FOREIGN_FRAMES_SHOWN s: a second
+        SYNC producer, a second host commanding one of these drives. (Not the host
+        heartbeat: socketcan loops a periodic task's frames back to this process.)
         """
         notes = []
         if self.bitrate and self.interface in BITRATE_NOT_TAKEN:
@@ -666,8 +669,10 @@ class CanopenTransport(Transport):
                          f'ip link set {self.channel_name} type can bitrate {self.bitrate})')
         channel = self.channel
         network = channel.network if channel is not None else None
-        for cob_id, count in sorted(getattr(network, 'foreign', {}).items()):
-            notes.append(self._foreign_note(cob_id, count))
+        now = time.monotonic()
+        for cob_id, (count, last) in sorted(getattr(network, 'foreign', {}).items()):
+            if now - last < FOREIGN_FRAMES_SHOWN:      # a tool plugged in once: not for ever
+                notes.append(self._foreign_note(cob_id, count))
         return tuple(note for note in notes if note)
 
     def _foreign_note(self, cob_id: int, count: int) -> str:
@@ -675,9 +680,6 @@ class CanopenTransport(Transport):
         if cob_id == SYNC_COB_ID and self.sync_producer:
             return (f'another device sends SYNC ({heard}): two SYNC producers (a second host '
                     'or process?); transport.sync_producer false on all but one')
-        if cob_id == HEARTBEAT_BASE + self.host_node_id:
-            return (f'another device sends heartbeats as node {self.host_node_id}, this '
-                    f"host's transport.host_node_id ({heard}): two hosts with one node id")
         unit = cob_id - RPDO1_BASE
         if unit in self._links:
             return (f'another device sends RPDO1 to node {unit} ({heard}): a second host '
@@ -689,8 +691,7 @@ class CanopenTransport(Transport):
         network = self.channel.network if self.channel is not None else None
         if not isinstance(network, GuardedNetwork):
             return
-        mine = {HEARTBEAT_BASE + self.host_node_id} | \
-            {RPDO1_BASE + unit for unit in self._links}
+        mine = {RPDO1_BASE + unit for unit in self._links}
         if self.sync_producer:
             mine.add(SYNC_COB_ID)
         network.watch = network.watch | mine
