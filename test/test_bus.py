@@ -651,3 +651,16 @@ def test_bus_node_refuses_a_params_file_section_for_one_of_its_drives(ros_contex
                        command_line=line)
     for each in (*node.drive_nodes, node):
         each.destroy_node()
+
+
+@pytest.mark.parametrize('where, setting, value, why', [
+    ('right', 'transport.unit_id', 'x', "drive right: transport.unit_id: a number, not 'x'"),
+    ('right', 'status_rate', [1], 'drive right: status_rate: a number, not \\[1\\]'),
+    ('right', 'auto_enable', 'yes', "drive right: auto_enable: true or false, not 'yes'"),
+    ('bus', 'transport.timeout', 'fast', "bus setting transport.timeout: a number, not 'fast'"),
+])
+def test_a_bus_file_value_of_the_wrong_kind_is_named(where, setting, value, why):
+    document = bus_document('/dev/null', '/x')
+    (document['bus'] if where == 'bus' else document['drives'][where])[setting] = value
+    with pytest.raises(ParameterError, match=why):
+        parse_bus_config(document)

@@ -292,3 +292,22 @@ def test_rate_and_auto_enable_set_before_configure_are_in_force(managed):
     h.stream(1.0)
     assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)       # auto_enable now
     wait_for(lambda: at_speed(h.sim, 1.0), 6.0, 'moving: auto_enable set before activate')
+
+
+@pytest.mark.parametrize('action', ['stop', 'disable'])
+def test_an_operators_stop_holds_through_activate_with_auto_enable(managed, action):
+    """~/stop before configure said "latched until ~/enable"; activate enabled it anyway."""
+    h = managed(auto_enable=True)
+    node = f'{h.namespace}/drive'
+    assert not h.trigger(action).success                 # answered: not verified, latched
+    h.stream(2.0)
+    assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
+    h.wait_cycles(40)
+    assert not h.sim.run_requested and h.sim.speed_rpm == 0.0, 'moved without ~/enable'
+    assert h.trigger('enable').success
+    wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'moving after ~/enable')
+    # the lifecycle's own hold is not an operator's: deactivate, activate moves again
+    assert change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
+    wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'moving again after re-activate')

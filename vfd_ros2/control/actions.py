@@ -186,13 +186,18 @@ class ServiceActions:
         must still not run again when the link returns. Returns what is held ('' for
         any other action).
         """
+        intent = self.intent
         if name == 'stop':
-            self.intent.stopped = True
+            intent.stopped = intent.asked_stop = True
             return 'the stop is latched'
         if name == 'disable':
-            self.intent.enabled = False
+            intent.enabled, intent.asked_stop = False, True
+            intent.idle_action = self._disable_action()     # the coast, as when online
             return 'the disable is latched'
         return ''
+
+    def _disable_action(self) -> str:
+        return 'disable' if 'disable' in self.drive.profile.control.values else 'stop'
 
     def _flag(self, name: str, fallback: bool) -> bool:
         return self._reading().flags.get(name, fallback)
@@ -217,6 +222,7 @@ class ServiceActions:
             return ActionResult(False, f'not enabled: {reading.unsafe}')
         intent = self.intent
         intent.enabled, intent.stopped, intent.idle_action = True, False, 'stop'
+        intent.asked_stop = False
         # A drive that lost its run command (it does not report running) gets it again;
         # one that runs is left alone (the run edge would pass through a stop).
         self.reassert_run = not self._flag('running', False)
@@ -248,9 +254,7 @@ class ServiceActions:
 
     def disable(self) -> Action:
         self.intent.enabled = False
-        values = self.drive.profile.control.values
-        return (yield from self._stopping('disable' if 'disable' in values else 'stop',
-                                          'disabled'))
+        return (yield from self._stopping(self._disable_action(), 'disabled'))
 
     def stop(self) -> Action:
         self.intent.stopped = True

@@ -70,20 +70,24 @@ def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
         raise ParameterError('a bus file needs a "bus" mapping and a "drives" mapping')
     bus = dict(data['bus'])
     name = str(bus.pop('name', 'bus'))
-    known = {s.name for s in SETTINGS}
     transport_type = str(bus.get('transport.type', 'modbus_rtu'))
     transport_class = load_transport_class(transport_type)
     link_keys = {'transport.type'} | {f'transport.{p.name}' for p in transport_class.parameters}
-    # what a drive entry may set: any drive_node setting, its drive class's drive.* ones
-    known |= {f'drive.{p.name}' for p in drive_class_for(transport_class).settings}
+    # what a drive entry may set: any drive_node setting, its drive class's drive.* ones;
+    # each with its default, whose kind (number, flag, text) a value must have
+    defaults = {s.name: s.default for s in SETTINGS} | \
+        {f'drive.{p.name}': p.default for p in drive_class_for(transport_class).settings} | \
+        {f'transport.{p.name}': p.default for p in transport_class.parameters}
+    known = {name for name in defaults if not name.startswith('transport.')} | \
+        {'transport.unit_id'}
     for key, value in bus.items():
         if not (key.startswith('transport.') or key in BUS_KEYS):
             raise ParameterError(f'bus setting {key!r}: only transport.* and {BUS_KEYS}')
         if key.startswith('transport.') and key not in link_keys:
             raise ParameterError(f'bus setting {key!r}: {transport_type} has no such setting '
                                  f'(it has {", ".join(sorted(link_keys))})')
-        if key in BUS_KEYS and (isinstance(value, bool) or not isinstance(value, (int, float))):
-            raise ParameterError(f'bus setting {key}: a number, not {value!r}')
+        if why := _wrong_kind(defaults.get(key), value):
+            raise ParameterError(f'bus setting {key}: {why}')
     if not isinstance(data['drives'], Mapping) or not data['drives']:
         raise ParameterError('"drives" must map a name to each drive\'s settings')
     drives = []
@@ -102,12 +106,28 @@ def parse_bus_config(data: Mapping[str, Any]) -> BusConfig:
                 raise ParameterError(f'drive {key}: {setting} belongs to the bus')
             if not setting.startswith('transport.') and setting not in known:
                 raise ParameterError(f'drive {key}: unknown setting {setting!r}')
+            if why := _wrong_kind(defaults.get(setting), settings[setting]):
+                raise ParameterError(f'drive {key}: {setting}: {why}')
         unit = settings.get('transport.unit_id', 1)
         if unit in unit_ids:
             raise ParameterError(f'drive {key}: unit id {unit} used twice on bus {name}')
         unit_ids.add(unit)
         drives.append(DriveEntry(str(key), namespace, node_name, settings))
     return BusConfig(name, bus, tuple(drives))
+
+
+def _wrong_kind(default: Any, value: Any) -> str:
+    """Return why ``value`` cannot stand for a setting whose default is ``default``."""
+    if default is None:
+        return ''
+    if isinstance(default, bool):
+        return '' if isinstance(value, bool) else f'true or false, not {value!r}'
+    if isinstance(default, (int, float)):
+        return '' if isinstance(value, (int, float)) and not isinstance(value, bool) else \
+            f'a number, not {value!r}'
+    if isinstance(default, str):
+        return '' if isinstance(value, (str, Mapping)) else f'a text, not {value!r}'
+    return ''
 
 
 def load_bus_config(path: str) -> BusConfig:

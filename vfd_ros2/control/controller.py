@@ -343,15 +343,19 @@ class DriveController:
                 f'{plan.describe()} instead of {self.protection.describe()} written at '
                 'connect: change control_rate and drive_comm_timeout with a restart')
 
-    def submit(self, name: str, *args: object) -> Future:
-        """Queue a service action; the Future resolves to an ActionResult."""
+    def submit(self, name: str, *args: object, latch: bool = True) -> Future:
+        """Queue a service action; the Future resolves to an ActionResult.
+
+        ``latch``: an operator's ``stop`` / ``disable`` holds from the moment it is
+        asked (see ``ServiceActions.latch``); a managed node's own hold does not.
+        """
         try:
             factory = self.services.factory(name, *args)
         except ParameterError as exc:
             future: Future = Future()
             future.set_result(ActionResult(False, str(exc)))
             return future
-        latched = self.services.latch(name)
+        latched = self.services.latch(name) if latch else ''
         if latched and (not self.link.online or not self._actions.serving):
             # Not verified (nothing to ask), but held: the drive stays stopped when it
             # comes back, whatever commands keep coming.
@@ -489,7 +493,9 @@ class DriveController:
             except TransportError as exc:
                 self._link_failed(exc)
         if not self.link.online:
-            self._actions.fail_all(f'drive offline: {self.link.error or "not connected"}')
+            held = '; a ~/stop or ~/disable asked holds until ~/enable' \
+                if self.intent.asked_stop else ''
+            self._actions.fail_all(f'drive offline: {self.link.error or "not connected"}{held}')
         self._publish_state()
 
     def finish(self) -> None:

@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 
 #: s between two log lines of the same repeating loop error
 LOOP_ERROR_LOG_PERIOD = 10.0
-#: kinds of loop error remembered for that (more: the oldest are forgotten, all at once)
+#: kinds of loop error remembered for that (more: the oldest is forgotten)
 LOOP_ERROR_KINDS = 32
 
 
@@ -109,8 +109,8 @@ class CycleLoop:
             now = time.monotonic()
             seen = self._error_kinds.get(kind)
             if seen is None:
-                if len(self._error_kinds) >= LOOP_ERROR_KINDS:
-                    self._error_kinds.clear()       # bounded: forget the old ones
+                if len(self._error_kinds) >= LOOP_ERROR_KINDS:     # bounded: the oldest goes
+                    self._error_kinds.pop(next(iter(self._error_kinds)))
                 self._error_kinds[kind] = [now, 0]
                 log.exception('%s: loop error: %s', self.name, exc)
             elif now - seen[0] >= LOOP_ERROR_LOG_PERIOD:

@@ -25,6 +25,8 @@ class Intent:
     fault_latched: bool = False     # a fault was seen; only ~/reset_fault clears it
     held: str = ''                  # why motion is held beyond the services ('' = not held):
                                     # a managed node not active; the reason tells what to do
+    asked_stop: bool = False        # an operator's ~/stop or ~/disable: only ~/enable ends
+                                    # it (not a managed node's activate with auto_enable)
 
 
 @dataclass(frozen=True)

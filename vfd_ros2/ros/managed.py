@@ -143,8 +143,14 @@ class DriveTransitions:
 
     def activate(self) -> TransitionCallbackReturn:
         self._allow(True)
+        # auto_enable enables, unless an operator's ~/stop or ~/disable holds (until
+        # ~/enable, whatever the lifecycle does meanwhile)
         enabling = {name: gate[0] for name, gate in self._gates.items()
-                    if gate[0].config.auto_enable}
+                    if gate[0].config.auto_enable and not gate[0].intent.asked_stop}
+        for name, gate in self._gates.items():
+            if gate[0].config.auto_enable and gate[0].intent.asked_stop:
+                self._log(f'activate: {name} not enabled: a ~/stop or ~/disable asked '
+                          'earlier holds until ~/enable')
         done = results({name: c.submit('enable') for name, c in enabling.items()},
                        max((c.config.action_timeout for c in enabling.values()), default=0)
                        * 2 + 1.0)
@@ -157,7 +163,8 @@ class DriveTransitions:
     def _hold(self) -> dict[str, ActionResult]:
         self._allow(False)
         controllers = {name: gate[0] for name, gate in self._gates.items()}
-        return results({name: c.submit('stop') for name, c in controllers.items()},
+        return results({name: c.submit('stop', latch=False)
+                        for name, c in controllers.items()},
                        max(c.config.stop_timeout for c in controllers.values()) + 1.0)
 
     def deactivate(self) -> TransitionCallbackReturn:
