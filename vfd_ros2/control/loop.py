@@ -106,26 +106,22 @@ class CycleLoop:
             # one line at most every LOOP_ERROR_LOG_PERIOD, with its count.
             where = traceback.extract_tb(exc.__traceback__)[-1]
             kind = f'{type(exc).__name__} at {where.filename}:{where.lineno}'
-            now = time.monotonic()
             seen = self._error_kinds.get(kind)
             if seen is None:
                 if len(self._error_kinds) >= LOOP_ERROR_KINDS:     # bounded: the oldest goes
                     self._error_kinds.pop(next(iter(self._error_kinds)))
-                self._error_kinds[kind] = [now, 0]
+                self._error_kinds[kind] = [time.monotonic(), 0]
                 log.exception('%s: loop error: %s', self.name, exc)
-            elif now - seen[0] >= LOOP_ERROR_LOG_PERIOD:
-                log.error('%s: loop error again (%d more times, %s), last: %s', self.name,
-                          seen[1] + 1, kind, exc)
-                seen[:] = [now, 0]
             else:
                 seen[1] += 1
-                self._repeats_untold = True
+                self._tell_repeats()
 
     def _tell_repeats(self, at_end: bool = False) -> None:
         """Log the repeats counted and not yet told, once their period is over.
 
-        An error that repeated a few times and stopped is told too (at the latest
-        when the loop ends), not only one that comes back after the period.
+        Called on a repeat, and after a good step while some are untold: an error
+        that repeated a few times and stopped is told too (at the latest when the
+        loop ends), not only one that comes back after the period.
         """
         now = time.monotonic()
         self._repeats_untold = False

@@ -18,7 +18,7 @@ commands for its drives' joint names and publish their joint states together
 from __future__ import annotations
 
 import sys
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
@@ -45,7 +45,8 @@ from .parameters import (
     descriptor,
     meant_for,
     params_files,
-    sections_for,
+    params_sections,
+    section_matches,
     unknown_overrides,
 )
 
@@ -130,7 +131,6 @@ class BusNode(Node):
                     raise ParameterError(f'drives {names[name]} and {entry.key} are both {name}: '
                                          'give each drive its own namespace')
                 names[name] = entry.key
-                self._refuse_sections_for(name, command_line)
                 try:
                     # use_global_arguments=False: a launch file's __ns/__node remaps are meant
                     # for the bus node, not for the drives' nodes (the bus file names them).
@@ -141,6 +141,7 @@ class BusNode(Node):
                         parameter_overrides=[Parameter(k, value=v) for k, v in values.items()]))
                 except CONFIGURATION_ERRORS as exc:
                     raise ParameterError(f'drive {entry.key}: {exc}') from exc
+            self._refuse_sections_for(names, command_line)
             self.joints = JointCommandBridge(
                 self, self.drive_nodes, str(joint_topics['joint_commands_topic']),
                 str(joint_topics['joint_states_topic']), float(joint_topics['joint_states_rate']))
@@ -185,8 +186,8 @@ class BusNode(Node):
             node.destroy_node()
         super().destroy_node()
 
-    def _refuse_sections_for(self, drive: str, command_line: Sequence[str]) -> None:
-        """Refuse a params file section meant for drive node ``drive``: it reaches none.
+    def _refuse_sections_for(self, drives: Iterable[str], command_line: Sequence[str]) -> None:
+        """Refuse a params file section meant for one of the ``drives``' nodes: it reaches none.
 
         A drive's node takes its settings from the bus file only (it ignores the
         process's arguments: a launch file's remaps are the bus node's). Sections that
@@ -194,13 +195,14 @@ class BusNode(Node):
         """
         own = self.get_fully_qualified_name()
         for path in params_files(command_line):
-            meant = [key for key in sections_for(path, drive)
-                     if key not in sections_for(path, own)]
-            if meant:
-                raise ParameterError(
-                    f'params file {path}: section {meant[0]} is for drive node {drive}, '
-                    'which takes its settings from the bus file only: put them there '
-                    f'({self.get_parameter("config_file").value})')
+            sections = [key for key in params_sections(path) if not section_matches(key, own)]
+            for drive in drives:
+                meant = next((key for key in sections if section_matches(key, drive)), None)
+                if meant is not None:
+                    raise ParameterError(
+                        f'params file {path}: section {meant} is for drive node {drive}, '
+                        'which takes its settings from the bus file only: put them there '
+                        f'({self.get_parameter("config_file").value})')
 
     def _schedule_publishing(self) -> None:
         """One timer per distinct rate serves every drive (again after a rate changed).

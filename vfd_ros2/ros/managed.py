@@ -145,12 +145,13 @@ class DriveTransitions:
         self._allow(True)
         # auto_enable enables, unless an operator's ~/stop or ~/disable holds (until
         # ~/enable, whatever the lifecycle does meanwhile)
-        enabling = {name: gate[0] for name, gate in self._gates.items()
-                    if gate[0].config.auto_enable and not gate[0].intent.asked_stop}
-        for name, gate in self._gates.items():
-            if gate[0].config.auto_enable and gate[0].intent.asked_stop:
+        enabling = {}
+        for name, (controller, _) in self._gates.items():
+            if controller.config.auto_enable and controller.intent.asked_stop:
                 self._log(f'activate: {name} not enabled: a ~/stop or ~/disable asked '
                           'earlier holds until ~/enable')
+            elif controller.config.auto_enable:
+                enabling[name] = controller
         done = results({name: c.submit('enable') for name, c in enabling.items()},
                        max((c.config.action_timeout for c in enabling.values()), default=0)
                        * 2 + 1.0)

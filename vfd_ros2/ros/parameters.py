@@ -110,28 +110,28 @@ def params_files(argv: Sequence[str]) -> list[str]:
     return files
 
 
-def sections_for(path: str, node: str) -> list[str]:
-    """Return the sections of params file ``path`` whose node pattern matches ``node``.
+def params_sections(path: str) -> list[str]:
+    """Return the node patterns (sections) of params file ``path``.
 
-    ``node`` is a fully qualified name; a section is a node name, '/' first or not,
-    with rcl's wildcards (``*`` one name part, ``**`` any). A file that does not
-    parse has no sections here (rcl refuses it anyway).
+    A file that does not parse has none here (rcl refuses it anyway).
     """
     try:
         with open(path, encoding='utf-8') as stream:
             document = yaml.safe_load(stream)
     except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return []
-    if not isinstance(document, dict):
-        return []
-    found = []
-    for key in document:
-        parts = str(key).strip('/').split('/')
-        pattern = '/'.join('.*' if part == '**' else '[^/]*' if part == '*' else re.escape(part)
-                           for part in parts)
-        if re.fullmatch(pattern, node.strip('/')):
-            found.append(str(key))
-    return found
+    return [str(key) for key in document] if isinstance(document, dict) else []
+
+
+def section_matches(section: str, node: str) -> bool:
+    """Return whether a params file section names ``node`` (a fully qualified name).
+
+    A section is a node name, '/' first or not, with rcl's wildcards (``*`` one
+    name part, ``**`` any).
+    """
+    pattern = '/'.join('.*' if part == '**' else '[^/]*' if part == '*' else re.escape(part)
+                       for part in section.strip('/').split('/'))
+    return re.fullmatch(pattern, node.strip('/')) is not None
 
 
 class LiveParameters:
