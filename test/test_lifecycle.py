@@ -251,7 +251,9 @@ def test_managed_bus_moves_every_drive_through_the_transitions(ros_context, tmp_
                              for s in d.status), 3.0, 'the bus on /diagnostics')
         entry = next(s for d in diagnostics for s in d.status if s.name == 'mb/bus: bus rs485_0')
         assert entry.level == DiagnosticStatus.STALE and entry.message == LINK_CLOSED, entry
+        assert not change(tester, '/mb/bus', Transition.TRANSITION_DEACTIVATE)  # not offered
         assert change(tester, '/mb/bus', Transition.TRANSITION_CONFIGURE)
+        assert not change(tester, '/mb/bus', Transition.TRANSITION_CONFIGURE)   # not again
         assert all(c.state.online for c in bus.bus.controllers.values())
         for _ in range(20):
             moving(1.0)
@@ -311,3 +313,27 @@ def test_an_operators_stop_holds_through_activate_with_auto_enable(managed, acti
     assert change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
     assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
     wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'moving again after re-activate')
+
+
+def test_a_transition_not_available_is_refused_and_the_node_lives_on(managed):
+    """A lifecycle manager's transition by id that the state does not offer: false, no crash.
+
+    rclpy raised on it ("Transition is not registered") and the exception ended the
+    process; here the running drive must go on running, then still obey.
+    """
+    h = managed(auto_enable=True)
+    node = f'{h.namespace}/drive'
+    assert not change(h.tester, node, Transition.TRANSITION_ACTIVATE)   # unconfigured
+    assert not change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
+    assert state(h.tester, node) == State.PRIMARY_STATE_UNCONFIGURED
+    assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
+    h.stream(2.0)
+    wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'running after activate')
+    for refused in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_CLEANUP, 99):
+        assert not change(h.tester, node, refused), refused
+    assert state(h.tester, node) == State.PRIMARY_STATE_ACTIVE
+    h.wait_cycles(10)
+    assert at_speed(h.sim, 2.0), 'the drive runs on: nothing happened to it'
+    assert change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
+    wait_for(lambda: h.sim.speed_rpm == 0.0, 3.0, 'stopped by deactivate')

@@ -272,6 +272,7 @@ class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
             {node.get_fully_qualified_name(): (node.controller, self._gate(node))
              for node in self.drive_nodes})
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
+        self._refuse_unavailable_transitions()
 
     @staticmethod
     def _gate(node: DriveNode):

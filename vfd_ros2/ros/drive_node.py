@@ -425,6 +425,7 @@ class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
             self.get_logger().error, self.controller.start, self.controller.shutdown,
             {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
+        self._refuse_unavailable_transitions()
 
     def _allow_motion(self, allowed: bool) -> None:
         self.motion_allowed = allowed

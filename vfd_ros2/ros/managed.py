@@ -29,6 +29,7 @@ import time
 from concurrent.futures import Future
 from typing import Callable, Mapping
 
+from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.utilities import remove_ros_args
 
@@ -197,6 +198,31 @@ class ManagedTransitions:
     """
 
     transitions: DriveTransitions
+
+    def _refuse_unavailable_transitions(self) -> None:
+        """Answer a transition the current state does not offer with success = false.
+
+        rclpy 7.1 raises on one requested by id alone (ros2/rclpy#1209: "Transition
+        is not registered"), and the exception ends the process, a running drive's
+        node with it. By label it answers false, as rclcpp does either way; Nav2's
+        lifecycle_manager requests by id. Called once the node is built.
+        """
+        service = self._service_change_state
+        change_state = service.callback
+        machine = self._state_machine
+
+        def guarded(request: ChangeState.Request,
+                    response: ChangeState.Response) -> ChangeState.Response:
+            transition = request.transition
+            if not transition.label and transition.id not in {
+                    available[0] for available in machine.available_transitions}:
+                self.get_logger().warning(
+                    f'transition {transition.id} refused: not available from the state '
+                    f'{machine.current_state[1]}')
+                response.success = False
+                return response
+            return change_state(request, response)
+        service.callback = guarded
 
     def _transition(self, name: str) -> TransitionCallbackReturn:
         try:
