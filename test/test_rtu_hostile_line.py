@@ -272,7 +272,7 @@ def test_reads_stay_right_while_the_reused_requests_are_replaced(tmp_path, monke
             for count in range(1, 6 - offset)]
     try:
         good, phantoms, failures = run_reads(transport, plan, 300, rng)
-        assert len(transport._requests) <= 3          # noqa: SLF001
+        assert len(transport._frames) <= 3            # noqa: SLF001
         assert len(transport._link._frames) <= 3            # noqa: SLF001
     finally:
         transport.close()
@@ -312,6 +312,7 @@ def test_writes_stay_right_while_the_reused_requests_are_replaced(tmp_path, monk
                 transport.write_registers(1, parameter.address, values)
                 assert [drive.words[parameter.address + n] for n in (0, 1)] == values
         assert len(transport._requests) <= 3               # noqa: SLF001
+        assert len(transport._frames) <= 3                 # noqa: SLF001
         assert len(transport._link._frames) <= 3            # noqa: SLF001
         assert transport.stats_for(1).errors == 0
     finally:
@@ -358,3 +359,65 @@ def test_a_reply_from_another_unit_is_named_in_the_timeout(tmp_path):
         os.close(slave)
         thread.join(1.0)
     assert transport.stats_for(1).timeouts == 1
+
+
+def test_a_frame_is_sized_as_pymodbus_sizes_it():
+    """The link takes each function's sizing rule from pymodbus' PDU class once.
+
+    Against pymodbus' own ``calculateRtuFrameSize`` for every function code (normal,
+    exception, sub-functions) on random headers of every length up to a frame's.
+    """
+    from pymodbus.pdu import DecodePDU
+
+    link = rtu_link.RtuLink('/dev/null', 115200)
+    decoder = DecodePDU(is_server=False)
+    rng = random.Random(3)
+    for function in range(256):
+        for _ in range(20):
+            header = bytes([rng.randrange(256), function]) + bytes(
+                rng.randrange(256) for _ in range(rng.randrange(0, 12)))
+            try:
+                pdu_class = decoder.lookupPduClass(header)
+                expected = pdu_class.calculateRtuFrameSize(header) if pdu_class else 0
+            except Exception:  # noqa: BLE001 - pymodbus raises on an unknown size
+                expected = 0
+            expected = expected if 4 <= expected <= rtu_link.MAX_FRAME else 0
+            assert link._frame_size(header) == expected, header.hex(' ')   # noqa: SLF001
+
+
+def test_a_read_reply_with_a_wrong_byte_count_is_a_bad_frame_not_values(tmp_path):
+    """A well-formed frame (good CRC) whose byte count is not the request's: no values."""
+    import os
+    import pty
+    import struct
+    import threading
+    import tty
+
+    from vfd_ros2.protocol.modbus_crc import crc16
+    master, slave = pty.openpty()
+    tty.setraw(master)
+    stop = threading.Event()
+
+    def answer_one_register_short() -> None:
+        while not stop.is_set():
+            try:
+                request = os.read(master, 64)
+            except OSError:             # closed at the end of the test
+                return
+            unit, _function, _address, count = struct.unpack('>BBHH', request[:6])
+            body = bytes([unit, 3, 2 * (count - 1)]) + bytes(2 * (count - 1))
+            os.write(master, body + crc16(body).to_bytes(2, 'little'))
+
+    server = threading.Thread(target=answer_one_register_short, daemon=True)
+    server.start()
+    transport = ModbusRtuTransport(os.ttyname(slave), 115200, timeout=0.2)
+    try:
+        with pytest.raises(BadFrame, match='byte count 4, not 6'):
+            transport.read_registers(1, 0x100, 3)
+        assert transport.stats_for(1).bad_frames == 1
+        assert transport.stats_for(1).transactions == 0
+    finally:
+        stop.set()
+        transport.close()
+        os.close(master)
+        os.close(slave)

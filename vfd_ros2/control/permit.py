@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from ..profiles import FaultInfo
 from .state import RunState
@@ -29,9 +30,12 @@ class Intent:
                                     # it (not a managed node's activate with auto_enable)
 
 
-@dataclass(frozen=True)
-class Conditions:
-    """Everything the rule looks at, taken at one moment."""
+class Conditions(NamedTuple):
+    """Everything the rule looks at, taken at one moment.
+
+    A named tuple: the loop takes one or two per drive and cycle, and a frozen
+    dataclass sets each field with ``object.__setattr__``.
+    """
 
     online: bool
     link_error: str

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import partial
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
 from ..errors import (
@@ -305,6 +306,9 @@ class ModbusDrive(DriveOnLink):
 
     def _read(self, address: int, count: int) -> list[int]:
         limit = self.profile.modbus.max_read_registers
+        if count <= limit:           # (a status block: one read, no closure per chunk)
+            return self._transact(partial(self.transport.read_registers, self.unit_id,
+                                          address, count))
         words: list[int] = []
         for offset in range(0, count, limit):
             chunk = min(limit, count - offset)

@@ -63,6 +63,10 @@ from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from ..protocol.linux_thread import tighten_timer_slack
 from ..protocol.modbus_crc import crc16
 from ..protocol.rtu_timing import character_time, frame_gap
+from .base import TransportStats
+
+#: pymodbus' sizing rule for the PDU classes that state it as data (see _frame_size)
+_BASE_SIZING = ModbusPDU.calculateRtuFrameSize.__func__
 
 #: longest RTU frame (Modbus over Serial Line V1.02, 2.5.1.1: 256 bytes)
 MAX_FRAME = 256
@@ -101,7 +105,7 @@ class RtuLink:
                  bytesize: int = 8, timeout: float = 0.1, frame_gap_s: float | None = None,
                  completion_margin: float = 0.02, late_reply_guard: float | None = None,
                  low_latency: bool = True, echo: bool = False,
-                 on_bytes: Callable[[bool, int], None] | None = None,
+                 counters: TransportStats | None = None,
                  on_discard: DiscardCallback | None = None) -> None:
         self.port = port
         self.baudrate = baudrate
@@ -117,12 +121,15 @@ class RtuLink:
         self.echo = echo
         #: what an operator should know about the port (e.g. low-latency mode refused)
         self.link_notes: tuple[str, ...] = ()
-        self._on_bytes = on_bytes or (lambda _sending, _count: None)
+        #: where the bytes sent and received are counted (``bytes_sent``, ``bytes_received``)
+        self.counters = counters or TransportStats()
         self._on_discard = on_discard or (lambda _unit, _kind: None)
         self._framer = FramerRTU(DecodePDU(is_server=False))
         # function code -> PDU class, for the codes without sub-functions (pymodbus'
         # lookupPduClass costs as much as the rest of sizing a frame, three times a reply)
         self._pdu_classes: dict[int, type[ModbusPDU] | None] = {}
+        # function code -> how its frames announce their length (see _frame_size)
+        self._sizing: dict[int, tuple[int, int]] = {}
         # (function, unit, address, count, values) -> the frame of that request (a drive's
         # status reads repeat each cycle, and its command writes while the command holds)
         self._frames: dict[tuple[int, ...], bytes] = {}
@@ -185,18 +192,32 @@ class RtuLink:
         whose header is not readable). Raises LinkTimeout (nothing came),
         LinkBadFrame (something else came) or LinkLost (the port failed).
         """
+        reply = self.exchange(self.frame(request), reply_bytes)
+        pdu = self._decode(reply, len(reply))
+        if pdu is None:
+            raise LinkBadFrame('malformed reply', reply)
+        return pdu
+
+    def exchange(self, frame: bytes, reply_bytes: int) -> bytes:
+        """Send a request ``frame`` and return its reply frame, checked as far as a frame goes.
+
+        The reply is one frame of the announced length with a good CRC, from
+        the request's unit, naming the request's function (a normal reply) or
+        that function + 0x80 (an exception reply), followed by t3.5 of silence.
+        What its data says is the caller's to check. ``reply_bytes`` and the
+        exceptions are as for ``transact``.
+        """
         if self._serial is None:
             self.open()
         if self._tuned_thread != threading.get_ident():
             tighten_timer_slack()
             self._tuned_thread = threading.get_ident()
-        frame = self._frame(request)
-        unit = request.dev_id
+        unit, function = frame[0], frame[1]
         try:
             self._wait_until_quiet(unit)
             sent_at = time.monotonic()
             self._write(frame)
-            self._on_bytes(True, len(frame))
+            self.counters.bytes_sent += len(frame)
             if self.echo:
                 self._check_echo(frame, sent_at)
             deadline = sent_at + len(frame) * self.char_time + self.timeout
@@ -209,20 +230,19 @@ class RtuLink:
                     raise LinkTimeout('no reply' if not others else
                                       f'no reply (a reply from unit {others[-1]} came instead: '
                                       f'a drive at another address than {unit}?)')
-                pdu = self._decode(data, size)
-                if pdu is None:
+                if size != len(data) or crc16(data):   # (over a whole frame the CRC leaves 0)
                     self._resync()
                     raise LinkBadFrame('malformed reply', data)
-                if pdu.dev_id != unit or (pdu.function_code & 0x7F) != request.function_code:
+                if data[0] != unit or (data[1] & 0x7F) != function:
                     # A late reply to an earlier request (of this or another unit).
-                    self._on_discard(pdu.dev_id, 'late')
-                    if pdu.dev_id != unit:
-                        others.append(pdu.dev_id)
+                    self._on_discard(data[0], 'late')
+                    if data[0] != unit:
+                        others.append(data[0])
                     continue
                 trailing = self._silence_after()
                 if trailing:
                     raise LinkBadFrame('bytes after the reply', data + trailing)
-                return pdu
+                return data
         except (OSError, serial.SerialException) as exc:
             self.close()
             raise LinkLost(str(exc)) from exc
@@ -241,7 +261,7 @@ class RtuLink:
             self._wait_until_quiet(0)
             sent_at = time.monotonic()
             self._write(frame)
-            self._on_bytes(True, len(frame))
+            self.counters.bytes_sent += len(frame)
             if self.echo:
                 self._check_echo(frame, sent_at)
         except (OSError, serial.SerialException) as exc:
@@ -249,9 +269,7 @@ class RtuLink:
             raise LinkLost(str(exc)) from exc
         self._quiet_from = sent_at + len(frame) * self.char_time + self.gap + turnaround
 
-    # --- internals ----------------------------------------------------------------
-
-    def _frame(self, request: ModbusPDU) -> bytes:
+    def frame(self, request: ModbusPDU) -> bytes:
         """Return the frame of ``request``: built once for a read or a write, which repeat.
 
         The frame of a read (03), a single write (06) or a multiple write (16) follows
@@ -268,6 +286,8 @@ class RtuLink:
             frame = self._frames[key] = self._framer.buildFrame(request)
         return frame
 
+    # --- internals ----------------------------------------------------------------
+
     def _check_echo(self, frame: bytes, sent_at: float) -> None:
         """Read back our own transmission (an echoing adapter); raise if it came back different."""
         deadline = sent_at + len(frame) * self.char_time + self.completion_margin + self.gap
@@ -280,7 +300,7 @@ class RtuLink:
             if not chunk:
                 raise OSError('port closed')
             heard += chunk
-        self._on_bytes(False, len(heard))
+        self.counters.bytes_received += len(heard)
         if heard != frame:
             self._resync()
             raise LinkBadFrame('the echo of the request differs (a collision, or no echo: '
@@ -317,14 +337,37 @@ class RtuLink:
         return pdu
 
     def _frame_size(self, header: bytes) -> int:
-        """Return the length a frame announces in its first bytes (0: not yet / unknown)."""
+        """Return the length a frame announces in its first bytes (0: not yet / unknown).
+
+        The rule is pymodbus' (``calculateRtuFrameSize`` of the frame's PDU class). Most
+        classes state it as data, a fixed ``rtu_frame_size`` or the position of a byte
+        count: those are taken once per function code.
+        """
         if len(header) < 2:
             return 0
+        sizing = self._sizing.get(header[1])
+        if sizing is None:
+            return self._size_by_class(header)
+        fixed, count_at = sizing
+        if fixed:
+            size = fixed
+        elif len(header) > count_at:
+            size = header[count_at] + count_at + 3
+        else:
+            return 0
+        return size if 4 <= size <= MAX_FRAME else 0
+
+    def _size_by_class(self, header: bytes) -> int:
+        """``_frame_size`` by pymodbus' PDU class; remember the rule where it is data."""
         try:
             pdu_class = self._pdu_class(header)
             size = pdu_class.calculateRtuFrameSize(header) if pdu_class else 0
         except Exception:  # noqa: BLE001 - an unknown or garbled header
             return 0
+        if pdu_class is not None and header[1] in self._pdu_classes and \
+                pdu_class.calculateRtuFrameSize.__func__ is _BASE_SIZING and \
+                (pdu_class.rtu_frame_size or pdu_class.rtu_byte_count_pos):
+            self._sizing[header[1]] = (pdu_class.rtu_frame_size, pdu_class.rtu_byte_count_pos)
         return size if 4 <= size <= MAX_FRAME else 0
 
     def _pdu_class(self, header: bytes) -> type[ModbusPDU] | None:
@@ -384,7 +427,7 @@ class RtuLink:
             last_at = time.monotonic()
             data += chunk
         self._last_byte_at = last_at
-        self._on_bytes(False, len(data))
+        self.counters.bytes_received += len(data)
         return data, size
 
     def _read_available(self, count: int) -> bytes:
@@ -438,7 +481,7 @@ class RtuLink:
             if not chunk:
                 raise OSError('port closed')
             data += chunk
-        self._on_bytes(False, len(data))
+        self.counters.bytes_received += len(data)
         self._quiet_from = time.monotonic()
         return data
 
