@@ -1,11 +1,14 @@
-"""A thin Modbus RTU master over pyserial, framed and decoded by pymodbus.
+"""A thin Modbus RTU master over pyserial, framed by pymodbus.
 
 pymodbus builds every request frame (``FramerRTU.buildFrame`` over its request
 PDUs, so the bytes on the wire are exactly the stock client's; a request the
 transport sends again and again, a status read or an unchanged command, is built
-once), tells the length of a reply from its first bytes (its PDU classes'
-``calculateRtuFrameSize``) and decodes it. The reply's CRC is checked by
-``protocol.modbus_crc`` (the same CRC, in fewer steps).
+once) and tells the length of a reply from its first bytes (its PDU classes'
+sizing rule, ``calculateRtuFrameSize``). ``exchange`` returns the reply frame
+checked as a frame (length, CRC, unit, function): the transport unpacks the
+cycle's read and write replies itself; ``transact`` decodes any reply with
+pymodbus' PDU classes. The CRC is ``protocol.modbus_crc`` (the same CRC, in
+fewer steps).
 What this layer replaces is only how a transaction is driven, because the stock
 synchronous client (pymodbus 3.16 ``ModbusSerialClient``) does not know how long
 the reply is: it polls ``in_waiting`` with ``time.sleep`` of four character times
