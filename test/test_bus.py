@@ -575,6 +575,20 @@ def test_bus_node_puts_drives_without_an_absolute_namespace_into_its_own(ros_con
             each.destroy_node()
 
 
+@pytest.mark.parametrize('sim_time', [True, False])
+def test_bus_node_gives_its_drives_its_clock(ros_context, tmp_path, sim_time):
+    """use_sim_time given to the bus (a launch file's) is the drives' too: one clock."""
+    node = bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
+                       use_sim_time=sim_time)
+    try:
+        assert [n.get_parameter('use_sim_time').value for n in node.drive_nodes] == \
+            [sim_time, sim_time]
+        assert all(n.get_clock().ros_time_is_active == sim_time for n in node.drive_nodes)
+    finally:
+        for each in (*node.drive_nodes, node):
+            each.destroy_node()
+
+
 def test_bus_node_refuses_drive_settings_that_would_reach_no_drive(ros_context, tmp_path):
     """A params file's max_velocity for the bus node used to be dropped without a word."""
     with pytest.raises(ParameterError, match='max_velocity, transport.parity given to '

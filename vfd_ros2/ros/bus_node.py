@@ -118,6 +118,9 @@ class BusNode(Node):
             for entry in self.config.drives:
                 values = {**self.config.settings, **entry.settings}
                 values['control_rate'] = 1.0 / self.bus.period
+                # One clock for the whole process: the drives' status and joint_states
+                # stamps on the bus node's (a launch file's use_sim_time is given to it).
+                values['use_sim_time'] = self.get_parameter('use_sim_time').value
                 namespace = entry.namespace if entry.namespace.startswith('/') else \
                     f'{self.get_namespace().rstrip("/")}/{entry.namespace}'
                 try:        # before rclpy makes a node of them (it warns on its way out)
