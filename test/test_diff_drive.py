@@ -266,13 +266,8 @@ class DiffDriveRig:
         self.namespace = f'/t{uuid.uuid4().hex[:8]}'
         ns = self.namespace
         values = {
+            # the wheels' topics are the defaults: relative, so in the rig's namespace
             'wheel_radius': R, 'track_width': TRACK,
-            'left_wheel_command_topic': f'{ns}/left_wheel/drive/velocity_command',
-            'right_wheel_command_topic': f'{ns}/right_wheel/drive/velocity_command',
-            'left_wheel_status_topic': f'{ns}/left_wheel/drive/status',
-            'right_wheel_status_topic': f'{ns}/right_wheel/drive/status',
-            'left_wheel_joint_states_topic': f'{ns}/left_wheel/joint_states',
-            'right_wheel_joint_states_topic': f'{ns}/right_wheel/joint_states',
             'max_linear_acceleration': 0.0, 'max_angular_acceleration': 0.0,
             'max_linear_velocity': 2.0, 'max_angular_velocity': 4.0,
         }
@@ -534,6 +529,27 @@ def test_bad_parameters_are_refused(ros_context):
 
 
 # --- stamped commands and position feedback ---------------------------------------
+
+
+@pytest.mark.parametrize('stamped', [True, False])
+def test_a_cmd_vel_publisher_of_the_other_type_is_named(make_rig, stamped):
+    """DDS never matches a Twist publisher with a TwistStamped subscription: said, not silent."""
+    import rclpy
+    from rclpy.context import Context
+    rig = make_rig(use_stamped_vel=stamped)
+    assert rig.node.foreign_cmd_vel == ''
+    other = Twist if stamped else TwistStamped
+    # Another process's participant (one participant takes one type per topic)
+    planner_context = Context()
+    rclpy.init(context=planner_context)
+    planner = Node('planner', namespace=rig.namespace, context=planner_context)
+    try:
+        planner.create_publisher(other, f'{rig.namespace}/cmd_vel', 10)
+        wanted = f'{rig.namespace}/planner (geometry_msgs/msg/{other.__name__})'
+        wait_for(lambda: rig.node.foreign_cmd_vel == wanted, 6.0, 'the other type named')
+    finally:
+        planner.destroy_node()
+        rclpy.shutdown(context=planner_context)
 
 
 def test_plain_twist_still_works_with_use_stamped_vel_false(make_rig):

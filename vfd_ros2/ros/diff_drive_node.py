@@ -67,22 +67,25 @@ from ..errors import ParameterError
 from .executable import run_node
 from .parameters import LiveParameters, check_value, descriptor
 
+#: s between two looks for cmd_vel publishers of the other twist type
+CMD_VEL_TYPE_CHECK_PERIOD = 2.0
+
 #: name, default, description, minimum, maximum, live (applied at once when set)
 PARAMETERS: tuple[tuple[str, Any, str, float | None, float | None, bool], ...] = (
     ('wheel_radius', 0.1, 'm, rolling radius of the drive wheels', 0.001, 10.0, False),
     ('track_width', 0.5, 'm between the wheel contact points', 0.01, 100.0, False),
-    ('left_wheel_command_topic', '/agv/left_wheel/drive/velocity_command',
+    ('left_wheel_command_topic', 'left_wheel/drive/velocity_command',
      'std_msgs/Float64 out: left wheel rad/s', None, None, False),
-    ('right_wheel_command_topic', '/agv/right_wheel/drive/velocity_command',
+    ('right_wheel_command_topic', 'right_wheel/drive/velocity_command',
      'std_msgs/Float64 out: right wheel rad/s', None, None, False),
-    ('left_wheel_status_topic', '/agv/left_wheel/drive/status',
+    ('left_wheel_status_topic', 'left_wheel/drive/status',
      'vfd_ros2/DriveStatus in: left wheel measured_velocity', None, None, False),
-    ('right_wheel_status_topic', '/agv/right_wheel/drive/status',
+    ('right_wheel_status_topic', 'right_wheel/drive/status',
      'vfd_ros2/DriveStatus in: right wheel measured_velocity', None, None, False),
-    ('left_wheel_joint_states_topic', '/agv/left_wheel/joint_states',
+    ('left_wheel_joint_states_topic', 'left_wheel/joint_states',
      'sensor_msgs/JointState in: left wheel position (rad), for position_feedback', None, None,
      False),
-    ('right_wheel_joint_states_topic', '/agv/right_wheel/joint_states',
+    ('right_wheel_joint_states_topic', 'right_wheel/joint_states',
      'sensor_msgs/JointState in: right wheel position (rad), for position_feedback', None,
      None, False),
     ('position_feedback', True, 'odometry from the wheel positions (JointState) while both '
@@ -259,9 +262,14 @@ class DiffDriveNode(Node):
             self._setup_tf()
         self.use_stamped_vel = bool(values['use_stamped_vel'])
         if self.use_stamped_vel:
-            self.create_subscription(TwistStamped, 'cmd_vel', self._on_cmd_vel_stamped, 10)
+            cmd_vel = self.create_subscription(TwistStamped, 'cmd_vel',
+                                               self._on_cmd_vel_stamped, 10)
         else:
-            self.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, 10)
+            cmd_vel = self.create_subscription(Twist, 'cmd_vel', self._on_cmd_vel, 10)
+        self._cmd_vel_topic = cmd_vel.topic_name
+        #: publishers on cmd_vel of the other twist type, as last told ('' = none)
+        self.foreign_cmd_vel = ''
+        self.create_timer(CMD_VEL_TYPE_CHECK_PERIOD, self._check_cmd_vel_publishers)
         self.create_subscription(DriveStatus, values['left_wheel_status_topic'],
                                  lambda msg: self._on_status(self.left, msg), 10)
         self.create_subscription(DriveStatus, values['right_wheel_status_topic'],
@@ -379,6 +387,32 @@ class DiffDriveNode(Node):
             self._integrate(now, min(elapsed, self.wheel_status_timeout_s))
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'diff drive cycle failed: {exc}', throttle_duration_sec=1.0)
+
+    def _check_cmd_vel_publishers(self) -> None:
+        """Warn of cmd_vel publishers of the other twist type: DDS never delivers theirs.
+
+        A planner publishing Twist (Jazzy's Nav2 without enable_stamped_cmd_vel,
+        teleop_twist_keyboard) to this node taking TwistStamped, or the reverse,
+        is otherwise a robot that does not move and logs nothing.
+        """
+        try:
+            wanted = 'geometry_msgs/msg/TwistStamped' if self.use_stamped_vel else \
+                'geometry_msgs/msg/Twist'
+            foreign = sorted({f'{info.node_namespace.rstrip("/")}/{info.node_name} '
+                              f'({info.topic_type})'
+                              for info in self.get_publishers_info_by_topic(self._cmd_vel_topic)
+                              if info.topic_type != wanted})
+            told = ', '.join(foreign)
+            if told and told != self.foreign_cmd_vel:
+                self.get_logger().warning(
+                    f'{self._cmd_vel_topic} has publishers of another type: {told}; this node '
+                    f'takes {wanted} (use_stamped_vel {str(self.use_stamped_vel).lower()}): '
+                    'their commands never arrive. Publish that type, or set use_stamped_vel '
+                    '(Nav2: enable_stamped_cmd_vel)')
+            self.foreign_cmd_vel = told
+        except Exception as exc:  # noqa: BLE001 - a graph query must not stop the node
+            self.get_logger().error(f'cmd_vel publisher check failed: {exc}',
+                                    throttle_duration_sec=10.0)
 
     def _elapsed(self, now: Time) -> float:
         """Return s since the last cycle; 0 on the first one or after a clock jump back."""
