@@ -135,6 +135,38 @@ def test_wire_utilisation_counts_bytes_and_the_spec_gap():
     assert figures.transactions_per_second == pytest.approx(50.0)
 
 
+def test_a_bus_whose_loop_runs_short_of_control_rate_warns_when_it_lasts():
+    """Overruns were only counted while the entry said OK: a bus that cannot keep its rate."""
+    from types import SimpleNamespace
+
+    from vfd_ros2.ros.bus_node import bus_diagnostic
+    clock = StepClock()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': '/dev/null',
+                'transport.baudrate': 115200, 'control_rate': 50.0},
+        'drives': {'a': {'transport.unit_id': 1}}}), clock)
+    bus._loop = SimpleNamespace(cycles=0, overruns=0)     # noqa: SLF001 - the loop's counters
+    bus.statistics()                                       # opens the window
+    seen = []
+    for cycles in (30, 60, 110, 140):       # 30/s, 30/s, 50/s, 30/s over 1 s windows
+        clock.now += 1.0
+        bus._loop.cycles = cycles                          # noqa: SLF001
+        figures = bus.statistics()
+        entry = bus_diagnostic('bus', 'line', figures, 1, 1, 50.0)
+        seen.append((round(figures.cycles_per_second), entry.level))
+    assert seen == [(30, DiagnosticStatus.OK), (30, DiagnosticStatus.WARN),
+                    (50, DiagnosticStatus.OK), (30, DiagnosticStatus.OK)]
+    clock.now += 1.0
+    bus._loop.cycles = 170                                 # noqa: SLF001
+    entry = bus_diagnostic('bus', 'line', bus.statistics(), 1, 1, 50.0)
+    assert entry.level == DiagnosticStatus.WARN
+    assert '30.0 cycles/s of control_rate 50 Hz' in entry.message, entry.message
+    assert {kv.key: kv.value for kv in entry.values}['cycles/s'] == '30.0'
+    # Offline drives stay the ERROR they are; a closed link stays STALE
+    assert bus_diagnostic('bus', 'line', bus.statistics(), 0, 1, 50.0).level == \
+        DiagnosticStatus.ERROR
+
+
 @pytest.mark.parametrize('response_delay', [0.0, 0.03])
 def test_a_starting_bus_connects_what_fits_the_cycle_its_drives_were_sized_for(
         tmp_path, response_delay):

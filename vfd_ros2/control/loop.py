@@ -55,6 +55,7 @@ class CycleLoop:
         self._rescheduled = threading.Event()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self.overruns = 0
+        self.cycles = 0                 # steps run (the rate achieved, beside control_rate)
         self.errors = 0
         self._error_kinds: dict[str, list] = {}    # error kind -> [last logged, repeats since]
         self._repeats_untold = False    # some repeats counted and not logged yet
@@ -137,6 +138,7 @@ class CycleLoop:
         next_cycle = self._clock()
         while not self._stop.is_set():
             self._guarded(self._step)
+            self.cycles += 1
             next_cycle += self.period
             if next_cycle - self._clock() < -self.period:
                 self.overruns += 1

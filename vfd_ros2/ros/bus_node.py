@@ -52,7 +52,8 @@ from .parameters import (
 
 
 def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
-                   drives_online: int, drives: int, closed: str = '') -> DiagnosticStatus:
+                   drives_online: int, drives: int, control_rate: float,
+                   closed: str = '') -> DiagnosticStatus:
     """Return the bus's /diagnostics entry; ``closed``: why the host closed its link."""
     status = DiagnosticStatus(name=name, hardware_id=hardware_id)
     if closed:          # a managed bus unconfigured: no data, not a comm loss
@@ -64,8 +65,15 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
         status.message = f'{drives - drives_online} of {drives} drives offline'
     else:
         status.level, status.message = DiagnosticStatus.OK, f'{drives} drives online'
+    if stats.rate_short and not closed:
+        # Every drive's status, watchdog stop and host-loss margin come later than sized.
+        status.level = max(status.level, DiagnosticStatus.WARN)
+        status.message += (f'; the control loop runs {stats.cycles_per_second:.1f} cycles/s '
+                           f'of control_rate {control_rate:g} Hz: the link does not sustain it '
+                           '(lower control_rate, or fewer drives or a faster link)')
     utilisation = 'unknown' if stats.utilisation is None else f'{100 * stats.utilisation:.1f}'
     pairs = [('transactions/s', f'{stats.transactions_per_second:.1f}'),
+             ('cycles/s', f'{stats.cycles_per_second:.1f}'),
              ('errors', stats.errors), ('timeouts', stats.timeouts),
              ('bad frames', stats.bad_frames), ('wire utilisation (%)', utilisation),
              ('cycle overruns', stats.overruns), ('drives online', f'{drives_online}/{drives}')]
@@ -249,7 +257,8 @@ class BusNode(Node):
                 array.status.append(bus_diagnostic(
                     bus_diagnostic_name(self.get_fully_qualified_name(), self.config.name),
                     self.bus.transport.description, self.bus.statistics(),
-                    sum(s.online for s in states), len(states), closed))
+                    sum(s.online for s in states), len(states), 1.0 / self.bus.period,
+                    closed))
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'bus diagnostics failed: {exc}', throttle_duration_sec=5.0)
