@@ -226,3 +226,11 @@ def test_prefixed_settings_strip_the_prefix():
 def test_realtime_priority_outside_sched_fifo_range_is_refused(value):
     with pytest.raises(ParameterError, match='realtime_priority must be 0..99'):
         ControllerConfig(realtime_priority=value)
+
+
+def test_every_numeric_setting_has_a_range():
+    """ros2 param describe shows each number's valid range (none was missing a limit)."""
+    unbounded = [s.name for s in config.SETTINGS
+                 if isinstance(s.default, (int, float)) and not isinstance(s.default, bool)
+                 and (s.minimum is None or s.maximum is None)]
+    assert unbounded == []

@@ -79,10 +79,10 @@ SETTINGS: tuple[Setting, ...] = (
             "left_wheel for /agv/left_wheel, else the node name)"),
     Setting('position.counts_per_rev', 0.0,
             "counts per motor revolution of the drive's position counter; 0 = the "
-            "profile's value (unused where the profile integrates the speed)"),
+            "profile's value (unused where the profile integrates the speed)", 0.0, 1e9),
     Setting('motor.rated_torque', 0.0,
             "N·m, the motor's rated torque: converts a torque in % to JointState.effort; "
-            '0 = no effort from a percent torque'),
+            '0 = no effort from a percent torque', 0.0, 1e6),
 )
 
 

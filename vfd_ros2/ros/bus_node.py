@@ -111,13 +111,14 @@ class BusNode(Node):
                 descriptor(priority.description + ' (set it in the bus file)', priority.default,
                            priority.minimum, priority.maximum))
             # Declared before the live-parameter check is installed (it refuses the rest).
-            joint_topics = {name: self.declare_parameter(name, default, ParameterDescriptor(
-                description=description, read_only=True)).value for name, default, description in (
+            joint_topics = {name: self.declare_parameter(name, default, descriptor(
+                description, default, *limits)).value
+                for name, default, description, *limits in (
                 ('joint_commands_topic', '', 'sensor_msgs/JointState velocity commands in, by '
                  "joint name (topic_based_ros2_control's joint_commands_topic); '' = none"),
                 ('joint_states_topic', '', "the drives' joint states out, together "
                  "(topic_based_ros2_control's joint_states_topic); '' = none"),
-                ('joint_states_rate', 50.0, 'Hz of joint_states_topic'))}
+                ('joint_states_rate', 50.0, 'Hz of joint_states_topic', 0.01, 1000.0))}
             self._refuse_drive_settings_given_here()
             self.live_parameters = LiveParameters(
                 self, {'control_rate'}, self._apply_parameters,
