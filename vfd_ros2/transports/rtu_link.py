@@ -75,6 +75,8 @@ _BASE_SIZING = ModbusPDU.calculateRtuFrameSize.__func__
 MAX_FRAME = 256
 #: bytes that name a reply's length: unit, function code, byte count
 _HEADER = 3
+#: reply headers whose announced length is kept (see RtuLink._frame_size)
+HEADERS_KEPT = 256
 #: request frames kept for reuse (a drive's status reads and command writes: a few per drive)
 FRAMES_KEPT = 512
 #: the functions whose frames are kept: read holding registers, write single / multiple
@@ -99,6 +101,15 @@ class LinkLost(Exception):
 
 #: ``on_discard(unit, kind)``: a frame was dropped; ``unit`` is None for garbage
 DiscardCallback = Callable[[int | None, str], None]
+
+
+def _came_instead(frame: bytes, unit: int) -> str:
+    """Name a well-formed frame that came where unit's reply was awaited."""
+    if frame[0] != unit:
+        return (f'a reply from unit {frame[0]} came instead (a drive at another address than '
+                f'{unit}, or a late reply)')
+    return (f'a reply to function {frame[1] & 0x7F} came instead (a late reply, or a confused '
+            'drive)')
 
 
 class RtuLink:
@@ -133,6 +144,7 @@ class RtuLink:
         self._pdu_classes: dict[int, type[ModbusPDU] | None] = {}
         # function code -> how its frames announce their length (see _frame_size)
         self._sizing: dict[int, tuple[int, int]] = {}
+        self._header_sizes: dict[bytes, int] = {}     # a frame's first bytes -> its length
         # (function, unit, address, count, values) -> the frame of that request (a drive's
         # status reads repeat each cycle, and its command writes while the command holds)
         self._frames: dict[tuple[int, ...], bytes] = {}
@@ -224,23 +236,26 @@ class RtuLink:
             if self.echo:
                 self._check_echo(frame, sent_at)
             deadline = sent_at + len(frame) * self.char_time + self.timeout
-            others: list[int] = []      # units whose frames came instead of this one's
+            instead: list[bytes] = []   # frames that came instead of this request's reply
             while True:
                 data, size = self._read_frame(deadline, reply_bytes)
                 if not data:
                     self._hold[unit] = time.monotonic() + self.late_reply_guard
                     self._quiet_from = time.monotonic()
-                    raise LinkTimeout('no reply' if not others else
-                                      f'no reply (a reply from unit {others[-1]} came instead: '
-                                      f'a drive at another address than {unit}?)')
+                    if instead:
+                        # Not a silent drive: a wrong reply came (another unit's, or another
+                        # function's). A bad frame, retried once by the drive layer (after
+                        # the guard), not a timeout that counts towards offline.
+                        raise LinkBadFrame(f'no reply: {_came_instead(instead[-1], unit)}',
+                                           instead[-1])
+                    raise LinkTimeout('no reply')
                 if size != len(data) or crc16(data):   # (over a whole frame the CRC leaves 0)
                     self._resync()
                     raise LinkBadFrame('malformed reply', data)
                 if data[0] != unit or (data[1] & 0x7F) != function:
                     # A late reply to an earlier request (of this or another unit).
                     self._on_discard(data[0], 'late')
-                    if data[0] != unit:
-                        others.append(data[0])
+                    instead.append(data)
                     continue
                 trailing = self._silence_after()
                 if trailing:
@@ -344,8 +359,12 @@ class RtuLink:
 
         The rule is pymodbus' (``calculateRtuFrameSize`` of the frame's PDU class). Most
         classes state it as data, a fixed ``rtu_frame_size`` or the position of a byte
-        count: those are taken once per function code.
+        count: those are taken once per function code, and the size a header of
+        ``_HEADER`` bytes announces once per header (a link's replies have a few).
         """
+        size = self._header_sizes.get(header)
+        if size is not None:
+            return size
         if len(header) < 2:
             return 0
         sizing = self._sizing.get(header[1])
@@ -358,7 +377,12 @@ class RtuLink:
             size = header[count_at] + count_at + 3
         else:
             return 0
-        return size if 4 <= size <= MAX_FRAME else 0
+        size = size if 4 <= size <= MAX_FRAME else 0
+        if len(header) == _HEADER and count_at < _HEADER:     # (it says all there is)
+            if len(self._header_sizes) >= HEADERS_KEPT:        # (garbage may vary freely)
+                self._header_sizes.clear()
+            self._header_sizes[header] = size
+        return size
 
     def _size_by_class(self, header: bytes) -> int:
         """``_frame_size`` by pymodbus' PDU class; remember the rule where it is data."""
