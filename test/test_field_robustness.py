@@ -267,6 +267,39 @@ def test_a_start_from_elsewhere_is_stopped_and_counted(make_harness):
     assert reply.success, reply.message
 
 
+def test_a_drive_that_runs_on_when_held_idle_is_an_error_not_a_quiet_watchdog(make_harness):
+    """Commands stop; the drive acknowledges every stop and runs on (a local run source).
+
+    The status said "watchdog" with OK diagnostics for as long as it ran, nothing
+    logged or counted. After stop_timeout: ERROR on /diagnostics, the reason in
+    ~/status, counted once; cleared when it does stop.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'stop_timeout': 1.0})
+    command = h.profile.parameter('P07.32').address
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                  'running')
+    real_write, stuck = h.sim.write, [True]
+
+    def ignoring_stops(address: int, values: list[int]) -> None:
+        if stuck[0] and address == command and values[0] != 1:
+            return                      # acknowledged, not applied
+        real_write(address, values)
+    h.sim.write = ignoring_stops
+    h.stop_stream()
+    status = h.wait_status(lambda s: s.state == 'watchdog', 2.0, 'watchdog trips')
+    assert status.running and not status.unexpected_starts
+    status = h.wait_status(lambda s: 'stop_timeout' in s.stop_reason, 4.0, 'reported')
+    assert status.state == 'watchdog' and status.unexpected_starts == 1, status
+    entry = h.node.diagnostic_status()
+    assert entry.level == DiagnosticStatus.ERROR and 'stop_timeout' in entry.message, entry
+    stuck[0] = False                    # it obeys again
+    h.wait_status(lambda s: not s.running and 'stop_timeout' not in s.stop_reason, 8.0,
+                  'stopped, the report cleared')
+    assert h.status.unexpected_starts == 1
+    assert h.node.diagnostic_status().level != DiagnosticStatus.ERROR
+
+
 # --- 4. degrade, don't drop ------------------------------------------------------------
 
 

@@ -158,6 +158,9 @@ class DriveController:
         self._last_running = False
         self._not_running_since: float | None = None  # told to run, not running since
         self._lost_run = ''             # why a drive told to run does not, once it is clear
+        self._running_idle_since: float | None = None   # running while held idle, since
+        self._running_idle_counted = False  # that episode is in unexpected_starts already
+        self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._unexpected_starts = 0
         self._check_comm_fault = False   # the first reading after a connect is not read yet
         self._comm_fault_grace_until = -math.inf
@@ -682,6 +685,28 @@ class DriveController:
         self.intent.fault_latched = True
         log.warning('%s fault %s %s', self.drive.hardware_id, fault.display, fault.name)
 
+    def _check_not_stopping(self, now: float) -> None:
+        """Report a drive held idle that still reports running after stop_timeout.
+
+        The idle command goes out every cycle; a drive that does not obey it (a local
+        run source, a stuck run input, a write acknowledged and not applied) runs on
+        while the status said "watchdog" or "stopped" with OK diagnostics. Counted
+        once in unexpected_starts (unless it started so), logged, and shown in
+        ~/status and /diagnostics (ERROR) until it stops.
+        """
+        if self._running_idle_since is None:
+            self._running_idle_since = now
+        if self._not_stopping or now - self._running_idle_since <= self.config.stop_timeout:
+            return
+        self._not_stopping = (f'held idle, the drive has reported running for more than '
+                              f'stop_timeout {self.config.stop_timeout:g} s although the idle '
+                              'command is written every cycle: stop it locally, and look for '
+                              'another run source (keypad, terminals) or a stuck run input')
+        if not self._running_idle_counted:
+            self._unexpected_starts += 1
+            self._running_idle_counted = True
+        log.error('%s: %s', self.drive.hardware_id, self._not_stopping)
+
     def _check_unexpected_motion(self) -> None:
         running = self._reading.flags.get('running', False)
         if running and not self._run_written:
@@ -690,12 +715,18 @@ class DriveController:
             self.services.reassert_idle = True
             # A run asked for a cycle ago may show only now (withdrawn at once by a short
             # command_timeout, say): that start was the host's own.
+            now = self._clock()
             if not self._last_running and \
-                    self._clock() - self._run_asked_at > 2 * self.addressing_interval():
+                    now - self._run_asked_at > 2 * self.addressing_interval():
                 self._unexpected_starts += 1
+                self._running_idle_counted = True
                 log.warning('%s reports running although the host has it %s: idle command '
                             'written again', self.drive.hardware_id,
                             decide(self.intent, self._conditions())[0].label)
+            self._check_not_stopping(now)
+        else:
+            self._running_idle_since, self._running_idle_counted = None, False
+            self._not_stopping = ''
         self._last_running = running
         # The other way round: told to run, the drive does not (it reset, was stopped
         # at its keypad, an inhibit): report it rather than show "running" with OK
@@ -744,6 +775,10 @@ class DriveController:
         if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):
             # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).
             run_state, reason = RunState.BLOCKED, reading.stuck or self._lost_run
+        not_stopping = self._not_stopping if run_state is not RunState.RUNNING and \
+            self.link.online else ''
+        if not_stopping:
+            reason = f'{reason}; {not_stopping}' if reason else not_stopping
         flags = reading.flags
         measured = reading.measured_velocity
         joint = self.joint
@@ -795,6 +830,7 @@ class DriveController:
             + ((self._command_refused,) if self._command_refused else ()),
             link_notes=self.drive.transport.link_notes + self.loop_notes,
             read_at=read_at,
+            not_stopping=not_stopping,
         )
         with self._lock:
             self._state = snapshot

@@ -93,6 +93,7 @@ class DriveState(NamedTuple):
     unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
     link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)
     read_at: float = math.nan       # the controller's clock when it was taken (after a poll)
+    not_stopping: str = ''          # held idle, the drive has run on past stop_timeout: why
 
     @property
     def state(self) -> str:

@@ -143,6 +143,9 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         fault = state.active_fault
         status.level = DiagnosticStatus.ERROR
         status.message = f'fault {fault.display} {fault.name}'
+    elif state.not_stopping:
+        status.level = DiagnosticStatus.ERROR
+        status.message = f'{state.state}: {state.not_stopping}'
     elif warnings := _warnings(state):
         status.level = DiagnosticStatus.WARN
         status.message = '; '.join(warnings)
