@@ -300,6 +300,38 @@ def test_a_drive_that_runs_on_when_held_idle_is_an_error_not_a_quiet_watchdog(ma
     assert h.node.diagnostic_status().level != DiagnosticStatus.ERROR
 
 
+def test_slow_replies_raise_the_drives_comm_loss_timeout_before_it_trips(make_harness):
+    """A drive answering each request 40 ms late (legal: transport.timeout is 0.1 s).
+
+    The comm-loss timeout was sized from the wire time of a cycle; the real cycle took
+    several times longer and the drive tripped its comm-loss fault (E35.03) although
+    the host was never silent. The timeout is raised to fit, written, and reported.
+    """
+    import time as clock
+    h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
+    register = h.profile.parameter('C02.04')
+    written = h.sim.words[register.address] * register.scale
+    assert written == pytest.approx(0.3)
+    real_read = h.sim.read
+
+    def slow_read(address: int, count: int) -> list[int]:
+        clock.sleep(0.04)
+        return real_read(address, count)
+    h.sim.read = slow_read
+    h.stream(1.0)
+    status = h.wait_status(lambda s: s.host_loss_timeout > 0.3 + 1e-6, 10.0, 'raised')
+    raised = status.host_loss_timeout
+    assert 'raised from 0.3 s' in status.host_loss_protection, status.host_loss_protection
+    assert h.sim.words[register.address] * register.scale == pytest.approx(raised, abs=0.05)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                  'running on slow replies')
+    h.wait_cycles(20)
+    assert not h.sim.fault_code, f'the drive tripped: fault {h.sim.fault_code}'
+    assert h.status.reconnects == 0
+    entry = h.node.diagnostic_status()
+    assert 'weaker than requested' in entry.message, entry.message
+
+
 # --- 4. degrade, don't drop ------------------------------------------------------------
 
 

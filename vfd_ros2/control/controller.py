@@ -31,6 +31,7 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 from ..drives import Drive, HostLossProtection, Reading
+from ..drives.base import HOST_LOSS_JITTER
 from ..errors import ParameterError, ProtocolException, TransportError, VfdError, quote
 from ..profiles import Parameter
 from ..protocol.scaling import SpeedUnit, VelocityScaling
@@ -44,6 +45,12 @@ from .watchdog import CommandWatchdog
 
 log = logging.getLogger(__name__)
 
+
+#: a gap between two polls using this share of the drive's comm-loss timeout (less the
+#: jitter allowance) has it re-planned: one more such cycle and the drive would trip
+NEAR_TRIP = 0.75
+#: the interval a re-plan is sized for, as a multiple of the gap that prompted it
+ADDRESSING_HEADROOM = 1.25
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
 LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
@@ -162,6 +169,7 @@ class DriveController:
         self._running_idle_counted = False  # that episode is in unexpected_starts already
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._unexpected_starts = 0
+        self._polled_at: float | None = None   # when the last poll of this connection began
         self._check_comm_fault = False   # the first reading after a connect is not read yet
         self._comm_fault_grace_until = -math.inf
         self._comm_faults_cleared = 0
@@ -487,8 +495,12 @@ class DriveController:
             config = self.config
             self.drive.display_period = display_period(config.shown_period, config.cycle_period)
             try:
+                polled_at = self._clock()
                 self._reading = self.drive.poll(self._cycle, preempt=self._preempt_reads)
                 self._cycle += 1
+                if self._polled_at is not None:
+                    self._check_addressing(polled_at - self._polled_at)
+                self._polled_at = polled_at
                 self._check_fault()
                 self._check_unexpected_motion()
                 self._actions.advance()
@@ -637,11 +649,43 @@ class DriveController:
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
         self._last_running = False
+        self._polled_at = None
         self._check_comm_fault = True
         # Online from here, but nothing is known of the drive's state until a status
         # read succeeds (the first may fail): hold it idle, never report "no fault".
         self._reading = Reading(unsafe=STATUS_NOT_READ)
         self.link.connected()
+
+    def _check_addressing(self, gap: float) -> None:
+        """Raise the drive's comm-loss timeout when its cycle nears it (``gap``: s between polls).
+
+        The plan sizes the timeout from the wire time of a cycle; a drive that takes
+        tens of ms to reply (legal within transport.timeout), or a loaded bus, stretches
+        the cycle until the drive trips its own comm-loss fault although the host never
+        fell silent. Once a gap uses NEAR_TRIP of the timeout, the timeout is re-planned
+        for that gap and written (logged; ~/status and /diagnostics show it weaker than
+        requested, with why). It is never lowered again while the node runs.
+        """
+        written = self._protection_written()
+        refresh = getattr(self.drive, 'refresh_host_loss', None)
+        if refresh is None or not written.active or \
+                gap <= NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER):
+            return
+        plan = self.drive.host_loss_plan(self.config.drive_comm_timeout,
+                                         gap * ADDRESSING_HEADROOM)
+        if not plan.active or plan.timeout <= written.timeout:
+            return
+        plan = replace(plan, note=f'raised from {written.timeout:g} s: {gap:.2f} s passed '
+                       'between two polls (slow replies or a loaded link)' +
+                       (f'; {plan.note}' if plan.note else ''))
+        try:
+            refresh(plan)
+        except ProtocolException as exc:
+            log.error('%s: the comm-loss timeout could not be raised to %g s for a cycle of '
+                      '%.2f s: %s', self.drive.hardware_id, plan.timeout, gap, exc)
+            return
+        self.protection, self.protection_applied = plan, None
+        log.warning('%s: host-loss protection %s', self.drive.hardware_id, plan.describe())
 
     def _reconnect_delay(self) -> float:
         """Keep a drive with a comm-loss timeout addressed within it while reconnecting.
@@ -655,6 +699,7 @@ class DriveController:
         return delay
 
     def _link_failed(self, exc: VfdError) -> None:
+        self._polled_at = None      # a gap while the link fails is not the cycle's
         if self.link.cycle_failed(exc):
             self._reading = Reading()
             self.drive.close()

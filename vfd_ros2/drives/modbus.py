@@ -257,6 +257,20 @@ class ModbusDrive(DriveOnLink):
                 problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
         return problems
 
+    def refresh_host_loss(self, protection: HostLossProtection) -> None:
+        """Write a new comm-loss timeout while online (the bus's real timing outgrew the plan).
+
+        Raises ProtocolException if the drive refuses it, TransportError if the link fails.
+        """
+        spec = self.profile.comm_timeout
+        if spec is None:
+            return
+        parameter = self.profile.parameter(spec.parameter)
+        raw = parameter.to_raw(protection.timeout)
+        self.write_raw(parameter, raw)
+        self._configured = [(p, r) for p, r in self._configured if p is not parameter]
+        self._configured.append((parameter, raw))
+
     def settings_lost(self) -> str:
         """Read back what ``configure`` set; say what differs now ('' if nothing does).
 
