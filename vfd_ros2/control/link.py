@@ -10,6 +10,10 @@ from ..errors import VfdError
 
 log = logging.getLogger(__name__)
 
+#: s during which the same reason for going offline is logged once (a flapping drive:
+#: offline, reconnected, offline again, every retry period); the repeats are counted
+OFFLINE_LOG_PERIOD = 10.0
+
 
 class LinkSupervisor:
     """Counts failed cycles, declares a drive offline, schedules the reconnects.
@@ -35,6 +39,10 @@ class LinkSupervisor:
         self._failed_this_cycle = False
         self._next_attempt = 0.0
         self._connect_error = ''     # the last connect failure logged (each reason once)
+        # reason -> [when last logged, times offline for it since]; quiet: the last
+        # offline was not logged, nor is the reconnect after it
+        self._offline_told: dict[str, list] = {}
+        self._quiet = False
 
     @property
     def connect_due(self) -> bool:
@@ -54,7 +62,8 @@ class LinkSupervisor:
         self.online = True
         self._failed_cycles = 0
         self.error = self._connect_error = self.closed_reason = ''
-        log.info('%s online', self.name)
+        if not self._quiet:
+            log.info('%s online', self.name)
 
     def connect_failed(self, exc: VfdError) -> None:
         self.error = str(exc)
@@ -68,10 +77,26 @@ class LinkSupervisor:
 
     def drop(self, reason: str) -> None:
         """Go offline now and connect afresh at once (the drive must be configured again)."""
-        log.warning('%s offline: %s', self.name, reason)
+        self._tell_offline(reason)
         self.online = False
         self.error = reason
         self._next_attempt = self._clock()
+
+    def _tell_offline(self, reason: str) -> None:
+        """Log going offline: once per reason and OFFLINE_LOG_PERIOD, with the repeats since."""
+        now = self._clock()
+        told = self._offline_told.get(reason)
+        if told is not None and now - told[0] < OFFLINE_LOG_PERIOD:
+            told[1] += 1
+            self._quiet = True
+            return
+        repeats = f' (and {told[1]} times more in the last {now - told[0]:.0f} s)' \
+            if told is not None and told[1] else ''
+        log.warning('%s offline: %s%s', self.name, reason, repeats)
+        if len(self._offline_told) >= 32:       # reasons that name values may vary freely
+            self._offline_told.clear()
+        self._offline_told[reason] = [now, 0]
+        self._quiet = False
 
     def cycle_ok(self) -> None:
         self._failed_cycles = 0
@@ -84,7 +109,7 @@ class LinkSupervisor:
         self._failed_cycles += 1
         self.error = str(exc)
         if self.online and self._failed_cycles >= self.threshold:
-            log.warning('%s offline: %s', self.name, exc)
+            self._tell_offline(str(exc))
             self.online = False
             self._next_attempt = self._clock() + self.retry_period
             return True

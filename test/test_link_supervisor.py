@@ -1,0 +1,44 @@
+"""LinkSupervisor: when a drive goes offline, and what the log says of it."""
+
+from __future__ import annotations
+
+import logging
+
+from vfd_ros2.control.link import OFFLINE_LOG_PERIOD, LinkSupervisor
+from vfd_ros2.errors import CommTimeout
+
+
+class StepClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def flap(link: LinkSupervisor, clock: StepClock, reason: str) -> None:
+    """Online, then offline after threshold failed cycles, 0.5 s later."""
+    link.connected()
+    for _ in range(link.threshold):
+        link.new_cycle()
+        link.cycle_failed(CommTimeout(reason))
+    assert not link.online
+    clock.now += 0.5
+
+
+def test_a_flapping_drive_is_logged_once_per_reason_and_period_with_the_repeats(caplog):
+    """A drive refusing a read went offline and back every 0.5 s: 444 lines in 2 min."""
+    clock = StepClock()
+    link = LinkSupervisor('drive x', threshold=2, retry_period=0.5, clock=clock)
+    caplog.set_level(logging.INFO, logger='vfd_ros2.control.link')
+    for _ in range(int(OFFLINE_LOG_PERIOD / 0.5) + 1):     # one period and one more
+        flap(link, clock, 'exception 6: busy')
+    flap(link, clock, 'no reply')                            # another reason: told at once
+    offline = [r.getMessage() for r in caplog.records if 'offline' in r.getMessage()]
+    assert offline == ['drive x offline: exception 6: busy',
+                       'drive x offline: exception 6: busy (and 19 times more in the last '
+                       f'{OFFLINE_LOG_PERIOD:.0f} s)',
+                       'drive x offline: no reply']
+    online = [r for r in caplog.records if r.getMessage() == 'drive x online']
+    assert len(online) == 3, 'the reconnects after an offline not logged are not logged'
+    assert link.reconnects == 21                       # every one counted all the same
