@@ -332,6 +332,36 @@ def test_slow_replies_raise_the_drives_comm_loss_timeout_before_it_trips(make_ha
     assert 'weaker than requested' in entry.message, entry.message
 
 
+def test_a_drive_node_whose_loop_runs_short_of_control_rate_warns(make_harness):
+    """A control_rate the link cannot sustain (a drive answering 30 ms late, 50 Hz asked).
+
+    The drive's entry said OK; now it shows its cycles/s and warns while the loop runs
+    below 90 % of control_rate. With replies on time, the same node is OK.
+    """
+    import time as clock
+    h = make_harness(node_parameters={'control_rate': 50.0})
+    name = h.node.diagnostic_status().name
+    entries: list[DiagnosticStatus] = []
+    h.tester.create_subscription(DiagnosticArray, '/diagnostics', lambda array: entries.extend(
+        s for s in array.status if s.name == name), 50)
+
+    def rate_of(entry: DiagnosticStatus) -> float:
+        return float({kv.key: kv.value for kv in entry.values}.get('cycles/s', 'nan'))
+    wait_for(lambda: entries and rate_of(entries[-1]) > 40, 5.0, 'cycles/s shown')
+    clock.sleep(1.5)                    # two windows of 0.5 s and more
+    assert entries[-1].level == DiagnosticStatus.OK, entries[-1].message
+    real_read = h.sim.read
+
+    def slow_read(address: int, count: int) -> list[int]:
+        clock.sleep(0.03)
+        return real_read(address, count)
+    h.sim.read = slow_read
+    wait_for(lambda: entries[-1].level == DiagnosticStatus.WARN and
+             'cycles/s of control_rate 50 Hz' in entries[-1].message, 6.0,
+             'the shortfall warned')
+    assert 0 < rate_of(entries[-1]) < 45, entries[-1]
+
+
 # --- 4. degrade, don't drop ------------------------------------------------------------
 
 

@@ -24,7 +24,7 @@ from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
 from .controller import DriveController
 from .factory import build_controller, build_transport, link_settings
-from .loop import CycleLoop
+from .loop import CycleLoop, RateWatch
 from .settings import SETTINGS
 
 log = logging.getLogger(__name__)
@@ -47,12 +47,8 @@ class BusStatistics:
     utilisation: float | None   # fraction of the wire's capacity in use (RTU), None if unknown
     overruns: int
     cycles_per_second: float = 0.0
-    #: the loop ran below RATE_SHORTFALL of control_rate in this window and the one before
+    #: the loop runs short of control_rate (RateWatch)
     rate_short: bool = False
-
-
-#: below this fraction of control_rate (sustained), the bus's /diagnostics entry warns
-RATE_SHORTFALL = 0.9
 
 
 @dataclass(frozen=True)
@@ -185,8 +181,8 @@ class Bus:
             controller.plan_host_loss(self.addressing_interval)
         self._loop: CycleLoop | None = None
         self._lock = threading.Lock()
-        # (when, wire seconds, transactions, loop cycles, whether that window ran short)
-        self._window: tuple[float, float, int, int, bool] = (clock(), 0.0, 0, 0, False)
+        self._window: tuple[float, float, int] = (clock(), 0.0, 0)  # when, wire s, transactions
+        self._rate = RateWatch(clock)
         self._connect_turn = 0
         # The drive connecting on a thread of its own (connects_beside_the_cycle), if any:
         # the bus thread leaves it alone until that thread has ended.
@@ -494,22 +490,20 @@ class Bus:
         now = self._clock()
         wire = self.transport.wire_seconds(stats.bytes_sent + stats.bytes_received,
                                            stats.frames_sent + stats.frames_received)
-        cycles = self._loop.cycles if self._loop else 0
+        loop = self._loop
         with self._lock:
-            then, wire_before, before, cycles_before, was_short = self._window
+            then, wire_before, before = self._window
             elapsed = max(now - then, 1e-6)
             rate = (stats.transactions - before) / elapsed
             utilisation = None if wire is None else (wire - wire_before) / elapsed
-            cycle_rate = max(cycles - cycles_before, 0) / elapsed
-            # Two windows in a row: one slow second (a connect, a collection) is not it.
-            short = self._loop is not None and elapsed >= 0.5 and cycles >= cycles_before \
-                and cycle_rate < RATE_SHORTFALL / self.period
-            self._window = (now, wire or 0.0, stats.transactions, cycles, short)
+            self._window = (now, wire or 0.0, stats.transactions)
+            cycle_rate, short = self._rate.sample(loop.cycles, self.period) if loop \
+                else (0.0, False)
         return BusStatistics(
             transactions_per_second=rate, errors=stats.errors, timeouts=stats.timeouts,
             bad_frames=stats.bad_frames, utilisation=utilisation,
-            overruns=self._loop.overruns if self._loop else 0,
-            cycles_per_second=cycle_rate, rate_short=short and was_short)
+            overruns=loop.overruns if loop else 0,
+            cycles_per_second=cycle_rate, rate_short=short)
 
 
 def load_shared(values: Mapping[str, Any]) -> bool:

@@ -225,6 +225,11 @@ class DriveController:
     # --- thread-safe API ------------------------------------------------------
 
     @property
+    def loop_cycles(self) -> int | None:
+        """Cycles this controller's own loop has run (None: none, e.g. a bus runs it)."""
+        return self._loop.cycles if self._loop is not None else None
+
+    @property
     def state(self) -> DriveState:
         with self._lock:
             return self._state

@@ -19,6 +19,38 @@ LOOP_ERROR_LOG_PERIOD = 10.0
 LOOP_ERROR_KINDS = 32
 
 
+#: below this fraction of its rate over two windows running, a loop is said to run short
+RATE_SHORTFALL = 0.9
+#: s, the shortest window RateWatch judges
+RATE_WINDOW = 0.5
+
+
+class RateWatch:
+    """The cycles per second a loop achieves, and whether it runs short of its rate.
+
+    ``sample`` is called by a diagnostics timer. It judges windows of at least
+    RATE_WINDOW (a faster timer gets the last judgement), and one slow window (a
+    connect, a collection) is not enough: two in a row are.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._window: tuple[float, int, bool] = (clock(), 0, False)   # start, cycles, short
+        self._last: tuple[float, bool] = (0.0, False)
+
+    def sample(self, cycles: int, period: float) -> tuple[float, bool]:
+        """Return (cycles/s in the last window judged, short in it and in the one before)."""
+        now = self._clock()
+        then, before, was_short = self._window
+        if now - then < RATE_WINDOW:
+            return self._last
+        rate = max(cycles - before, 0) / (now - then)
+        short = cycles >= before and rate < RATE_SHORTFALL / period
+        self._window = (now, cycles, short)
+        self._last = (rate, short and was_short)
+        return self._last
+
+
 class CycleLoop:
     """Calls ``step`` every ``period`` seconds in its own thread, then ``finish``.
 

@@ -38,7 +38,7 @@ from .drive_node import DriveNode, autostart
 from .executable import CONFIGURATION_ERRORS, run_node
 from .joint_topics import JointCommandBridge
 from .managed import DriveTransitions, ManagedTransitions, parse_options
-from .messages import bus_diagnostic_name
+from .messages import add_loop_rate, bus_diagnostic_name
 from .parameters import (
     LiveParameters,
     check_value,
@@ -65,19 +65,14 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
         status.message = f'{drives - drives_online} of {drives} drives offline'
     else:
         status.level, status.message = DiagnosticStatus.OK, f'{drives} drives online'
-    if stats.rate_short and not closed:
-        # Every drive's status, watchdog stop and host-loss margin come later than sized.
-        status.level = max(status.level, DiagnosticStatus.WARN)
-        status.message += (f'; the control loop runs {stats.cycles_per_second:.1f} cycles/s '
-                           f'of control_rate {control_rate:g} Hz: the link does not sustain it '
-                           '(lower control_rate, or fewer drives or a faster link)')
     utilisation = 'unknown' if stats.utilisation is None else f'{100 * stats.utilisation:.1f}'
     pairs = [('transactions/s', f'{stats.transactions_per_second:.1f}'),
-             ('cycles/s', f'{stats.cycles_per_second:.1f}'),
              ('errors', stats.errors), ('timeouts', stats.timeouts),
              ('bad frames', stats.bad_frames), ('wire utilisation (%)', utilisation),
              ('cycle overruns', stats.overruns), ('drives online', f'{drives_online}/{drives}')]
     status.values = [KeyValue(key=k, value=str(v)) for k, v in pairs]
+    add_loop_rate(status, stats.cycles_per_second, stats.rate_short and not closed,
+                  control_rate)
     return status
 
 

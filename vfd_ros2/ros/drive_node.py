@@ -46,6 +46,7 @@ from ..control.actions import NOT_SERVED
 from ..control.bus import BUS_KEYS
 from ..control.controller import DriveController
 from ..control.factory import build_controller
+from ..control.loop import RateWatch
 from ..control.settings import SETTINGS, shown_period
 from ..control.state import CommandOutcome, DriveState
 from ..drives import drive_class_for
@@ -56,6 +57,7 @@ from .deferred_service import Deferred, create_deferred_service
 from .executable import run_node
 from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import (
+    add_loop_rate,
     default_joint_name,
     diagnostic_status,
     drive_diagnostic_name,
@@ -151,6 +153,7 @@ class DriveNode(Node):
             self.diagnostics_rate = float(values['diagnostics_rate'])
             self._on_rate_change = on_rate_change
             self._rate_timers = {}
+            self._loop_rate = RateWatch()
             if own_timers:
                 self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
                 self._rate_timers = {
@@ -312,7 +315,12 @@ class DriveNode(Node):
         try:
             array = DiagnosticArray()
             array.header.stamp = self.get_clock().now().to_msg()
-            array.status = [self.diagnostic_status()]
+            status = self.diagnostic_status()
+            cycles = self.controller.loop_cycles
+            if cycles is not None and self._owns_controller:     # (a bus shows its own)
+                rate, short = self._loop_rate.sample(cycles, self.controller.config.cycle_period)
+                add_loop_rate(status, rate, short, 1.0 / self.controller.config.cycle_period)
+            array.status = [status]
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)

@@ -96,6 +96,24 @@ def fault_message(fault: FaultInfo, active: bool, stamp: Time, hardware_id: str)
     return msg
 
 
+def add_loop_rate(status: DiagnosticStatus, cycles_per_second: float, short: bool,
+                  control_rate: float) -> None:
+    """Show a control loop's achieved rate; WARN while it runs short of ``control_rate``.
+
+    Every status read, watchdog stop and host-loss margin comes later than the rate
+    implies: the link (or the host) does not sustain it.
+    """
+    status.values.append(KeyValue(key='cycles/s', value=f'{cycles_per_second:.1f}'))
+    if not short or status.level not in (DiagnosticStatus.OK, DiagnosticStatus.WARN):
+        return
+    text = (f'the control loop runs {cycles_per_second:.1f} cycles/s of control_rate '
+            f'{control_rate:g} Hz: the link does not sustain it (lower control_rate, or fewer '
+            'drives or a faster link)')
+    status.message = text if status.level == DiagnosticStatus.OK else \
+        f'{status.message}; {text}'
+    status.level = DiagnosticStatus.WARN
+
+
 def drive_diagnostic_name(node_fqn: str) -> str:
     """`<namespace>/<node>: drive`, grouped by config/diagnostics_aggregator.yaml."""
     return f'{node_fqn.lstrip("/")}: drive'
