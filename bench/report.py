@@ -318,12 +318,15 @@ BOUNDS = """### Targets and what bounds them
   transactions run on `vfd_ros2/transports/rtu_link.py`: pymodbus' `FramerRTU` and PDU
   classes over pyserial (byte-identical frames), the reply read by its known length in
   `select` with deadlines from the baud rate, t3.5 of silence kept before each request. A
-  checked reply goes straight to its PDU class (pymodbus' `handleFrame` checked the CRC a
-  second time and formatted every PDU for a debug log: a third of a transaction's CPU), and
-  the rest of a frame is read without a `select` when it is already in (software floor:
-  ~65-100 µs of CPU per transaction, ~100-120 before; 66 µs on 2026-11-24 with the cheaper
-  cycle of section 5: reads built once, the CRC two bytes per step; 49 µs in the quiet full
-  run of 2026-11-26). What is left to the wire's limit is turnaround per transaction:
+  checked reply went straight to its PDU class (pymodbus' `handleFrame` checked the CRC a
+  second time and formatted every PDU for a debug log: a third of a transaction's CPU);
+  since 2026-11-27 09:00 the cycle's two requests, a status read (03) and a command write
+  (06), are checked and unpacked from the reply frame itself (no PDU object per reply;
+  other requests still go through pymodbus' PDU classes), and the rest of a frame is read
+  without a `select` when it is already in (software floor: ~65-100 µs of CPU per
+  transaction, ~100-120 before; 66 µs on 2026-11-24 with the cheaper cycle of section 5:
+  reads built once, the CRC two bytes per step; 49 µs in the quiet full run of 2026-11-26;
+  41 µs in the full run of 2026-11-27 09:06, and every row at 115200 at 94-96 %). What is left to the wire's limit is turnaround per transaction:
   scheduler wake-ups on both sides (the master seeing the reply's last byte, the slave
   seeing the request) and the GIL hand-over from the rclpy executor thread. The simulator's
   own share is measured now (`simulator late µs`: how late it handed over a reply's last
@@ -344,7 +347,8 @@ BOUNDS = """### Targets and what bounds them
   simulator itself 170-480 µs late per reply. In the full run of 2026-11-27 02:47 four
   Kinco drives read 85.4 % with the simulator 133 µs late per reply (~50 in the other rows);
   three interleaved pairs right after gave 93.0-93.9 % for that morning's code and
-  93.1-94.3 % for this one's (four AM drives: 92.9-94.2 and 94.0-94.3 %).
+  93.1-94.3 % for this one's (four AM drives: 92.9-94.2 and 94.0-94.3 %); 95.4 % in the full
+  run of 09:06.
 - **pymodbus' stock client** (`ModbusSerialClient`, kept as `PymodbusRtuTransport` and
   measured in the same run): it does not know the reply length, so `_wait_for_data` polls
   `in_waiting` with `time.sleep(4 characters, ≥ 1 ms)` until the count stops growing —
@@ -386,8 +390,8 @@ BOUNDS = """### Targets and what bounds them
   others: 0 missed at both priorities in the CANopen re-run of 2026-11-23 night (0.05 %
   steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08
   %), 16 and 19 in the CANopen re-run right after it (0.39 %); in the full runs of 2026-11-27
-  11 and 9 at 00:36 (0.24 %), 14 and 1 at 02:20 (0.05 %), 4 and 0 at 02:47 (0.2 %, the
-  table); runs with more host steal miss a few dozen. The misses
+  11 and 9 at 00:36 (0.24 %), 14 and 1 at 02:20 (0.05 %), 4 and 0 at 02:47 (0.2 %), 3 and 0 at
+  09:06 (0.01 %, the table); runs with more host steal miss a few dozen. The misses
   come with the host's steal: four more 60 s runs at priority 50 on 2026-11-26 gave 0, 0
   and 0 missed with 1-11 ticks (10 ms each) of steal during the run, and 18 with 25 ticks;
   putting the channel's receive thread (the library's notifier) at SCHED_FIFO too,
@@ -412,16 +416,25 @@ BOUNDS = """### Targets and what bounds them
   priority: at SCHED_FIFO it pre-empted the driver and missed more), the publisher and
   loopback TCP; a cycle that wakes more than a period late is missed, and node 1's RPDO
   gaps come in clusters of a few hundred ms, as when the whole VM is descheduled. 8 drives
-  at 500 Hz: neither process keeps up here (drives time out and reconnect: `connections`),
-  and on a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
+  at 500 Hz: neither process kept up here until 2026-11-27 (drives timed out and
+  reconnected: `connections`); in the full run of 09:06, 495.8 cycles/s with 125 missed
+  over 30 s and no reconnect. On a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
   capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — not met: 4.0 % with four drives and 6.6 % for a drive_node in the re-run of
-  section 5 at 2026-11-27 07:28 (0.01 % steal). Four runs of those two cases that day,
-  of code within 0.5 % of the same bytecode steps per drive-cycle (8170-8205, section 5a),
-  gave 3.1-4.2 % and 6.5-7.3 %: this host's noise is as large as what is missing (3.5 and
-  6.5 % at 04:23, 3.4 and 6.7 % in the full run of 02:47, 3.4-3.8 % and 5.8-6.9 % over six
-  runs on 2026-11-26); half the previous design's.**
+  drive_node) — four drives met: 2.5 % in the full run of 2026-11-27 09:06 (0.01 % steal),
+  2.4-2.6 % in three runs of section 5 before it; a drive_node at the limit: 5.6 % in the
+  full run, 4.8, 4.8 and 5.2 % in those three runs (met in three of four). Until that
+  morning: 4.0 % and 6.6 % (07:28), and 3.1-4.2 % and 6.5-7.3 % over four runs of code
+  within 0.5 % of the same bytecode steps (8170-8205 per drive-cycle).**
+  - *What met it (2026-11-27 09:00).* The RTU transport unpacks the replies to the
+    cycle's reads (03) and writes (06) from the checked frame instead of building a
+    pymodbus PDU for each and decoding it there; a reply header's announced length is
+    remembered per header; the link counts bytes in place; the loop's `Conditions` is a
+    named tuple. 8205 -> 6114 steps per drive-cycle (-25 %, section 5a), but the control
+    thread went from 10.9 to 5.9-6.3 % of a core for four drives (-42 %) and its wake-ups
+    from 1856 to 1563-1675 a second: a cold burst of work after each wake-up pays for every
+    object it builds and every line of code it touches (below), and a PDU per reply was
+    both.
   - *What changed for it.* The executables spin rclpy's `EventsExecutor`
     (`VFD_ROS2_EXECUTOR=single` selects the previous `SingleThreadedExecutor`, measured
     side by side): the single-threaded one rebuilt its wait set from every entity on every
@@ -482,14 +495,15 @@ BOUNDS = """### Targets and what bounds them
     as the manual allows (the AM reads at most 5 registers and no undocumented gaps, and
     the run and fault state and the speed are read every cycle) and bought little. An
     integrator short of CPU has `status_rate`: at 1 Hz a drive_node took 4.9-6.0 % on
-    2026-11-26, 5.2 % in the full run of 2026-11-27.
+    2026-11-26, 5.2 % in the full run of 2026-11-27 02:47, 4.1 % in that of 09:06.
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
   priority), 87-90 % in the full runs of 2026-11-23 with host steal; the quiet full run of
   2026-11-26 met it at both priorities (90.3 and 91.5 %), and so did the full run of
   2026-11-27 00:36 (91.1 and 93.2 %); those at 02:20 and 02:47 gave 90.0 and 90.5 %, 89.0
-  and 91.8 %.** Before the executor change
+  and 91.8 %, and that of 09:06 (replies unpacked from the frame, above) 94.5 and 95.2 %
+  at 10-11 % of a core (was ~19 %).** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
