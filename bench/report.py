@@ -326,7 +326,8 @@ BOUNDS = """### Targets and what bounds them
   without a `select` when it is already in (software floor: ~65-100 µs of CPU per
   transaction, ~100-120 before; 66 µs on 2026-11-24 with the cheaper cycle of section 5:
   reads built once, the CRC two bytes per step; 49 µs in the quiet full run of 2026-11-26;
-  41 µs in the full run of 2026-11-27 09:06, and every row at 115200 at 94-96 %). What is left to the wire's limit is turnaround per transaction:
+  41 µs in the full run of 2026-11-27 09:06, and every row at 115200 at 94-96 %). What is
+  left to the wire's limit is turnaround per transaction:
   scheduler wake-ups on both sides (the master seeing the reply's last byte, the slave
   seeing the request) and the GIL hand-over from the rclpy executor thread. The simulator's
   own share is measured now (`simulator late µs`: how late it handed over a reply's last
@@ -418,8 +419,8 @@ BOUNDS = """### Targets and what bounds them
   gaps come in clusters of a few hundred ms, as when the whole VM is descheduled. 8 drives
   at 500 Hz: neither process kept up here until 2026-11-27 (drives timed out and
   reconnected: `connections`); in the full run of 09:06, 495.8 cycles/s with 125 missed
-  over 30 s and no reconnect. On a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus SYNC would exceed the bus's
-  capacity anyway (`load % 1M`).
+  over 30 s and no reconnect. On a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
+  SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
   drive_node) — four drives met: 2.5 % in the full run of 2026-11-27 09:06 (0.01 % steal),
   2.4-2.6 % in three runs of section 5 before it; a drive_node at the limit: 5.6 % in the
