@@ -424,7 +424,7 @@ BOUNDS = """### Targets and what bounds them
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
   drive_node) — four drives met: 2.5 % in the full run of 2026-11-27 09:06 (0.01 % steal),
   2.4-2.6 % in three runs of section 5 before it; a drive_node at the limit: 5.6 % in the
-  full run, 4.8, 4.8 and 5.2 % in those three runs (met in three of four). Until that
+  full run, 4.8, 4.8 and 5.2 % in those three runs (met in two of four). Until that
   morning: 4.0 % and 6.6 % (07:28), and 3.1-4.2 % and 6.5-7.3 % over four runs of code
   within 0.5 % of the same bytecode steps (8170-8205 per drive-cycle).**
   - *What met it (2026-11-27 09:00).* The RTU transport unpacks the replies to the
