@@ -163,8 +163,13 @@ def test_a_bus_whose_loop_runs_short_of_control_rate_warns_when_it_lasts():
     assert '30.0 cycles/s of control_rate 50 Hz' in entry.message, entry.message
     assert {kv.key: kv.value for kv in entry.values}['cycles/s'] == '30.0'
     # Offline drives stay the ERROR they are; a closed link stays STALE
-    assert bus_diagnostic('bus', 'line', bus.statistics(), 0, 1, 50.0).level == \
-        DiagnosticStatus.ERROR
+    clock.now += 1.0
+    bus._loop.cycles = 200                                 # noqa: SLF001
+    short = bus.statistics()
+    assert short.rate_short
+    assert bus_diagnostic('bus', 'line', short, 0, 1, 50.0).level == DiagnosticStatus.ERROR
+    closed = bus_diagnostic('bus', 'line', short, 1, 1, 50.0, closed='link closed')
+    assert closed.level == DiagnosticStatus.STALE and closed.message == 'link closed'
 
 
 @pytest.mark.parametrize('response_delay', [0.0, 0.03])
@@ -710,3 +715,21 @@ def test_a_bus_file_value_of_the_wrong_kind_is_named(where, setting, value, why)
     (document['bus'] if where == 'bus' else document['drives'][where])[setting] = value
     with pytest.raises(ParameterError, match=why):
         parse_bus_config(document)
+
+
+def test_a_slow_loop_on_its_rate_is_not_short_however_often_it_is_sampled():
+    """0.5 Hz control and diagnostics at 2 Hz: windows of 0.5 s held 0 or 1 cycle, WARN."""
+    from vfd_ros2.control.loop import RateWatch
+    clock = StepClock()
+    watch = RateWatch(clock)
+    start, verdicts = clock.now, []
+    for _ in range(40):
+        clock.now += 0.5
+        cycles = int((clock.now - start) / 2.0)           # exactly on its 2 s period
+        verdicts.append(watch.sample(cycles, 2.0)[1])
+    assert not any(verdicts)
+    for _ in range(24):                                   # then at half its rate: short
+        clock.now += 0.5
+        cycles += 1 if round(clock.now * 2) % 8 == 0 else 0
+        verdicts.append(watch.sample(cycles, 2.0)[1])
+    assert verdicts[-1]

@@ -332,6 +332,8 @@ def test_a_transition_not_available_is_refused_and_the_node_lives_on(managed):
     wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'running after activate')
     for refused in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_CLEANUP, 99):
         assert not change(h.tester, node, refused), refused
+    by_label = ChangeState.Request(transition=Transition(label='configure'))
+    assert not call(h.tester, ChangeState, f'{node}/change_state', by_label).success
     assert state(h.tester, node) == State.PRIMARY_STATE_ACTIVE
     h.wait_cycles(10)
     assert at_speed(h.sim, 2.0), 'the drive runs on: nothing happened to it'

@@ -196,6 +196,7 @@ class Bus:
         # value errs towards checking too early).
         self._command_waiting = False
         self._watchdog_check_at = 0.0
+        self._keep_alive_check_at = math.inf     # see _plan_keep_alive (after the first polls)
 
     @staticmethod
     def _check_one_link(config: BusConfig) -> None:
@@ -308,6 +309,7 @@ class Bus:
         self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
             controller.poll_phase()
+        self._plan_keep_alive(controllers)
 
     def _serving(self) -> Sequence[DriveController]:
         """Return the drives this thread serves: all but one connecting beside the cycle.
@@ -388,12 +390,28 @@ class Bus:
             self._loop.request_preempt()
 
     def preempt_between_reads(self) -> None:
-        """``preempt`` before a status read, when a command waits or a watchdog may be due."""
-        if not self._command_waiting and self._clock() < self._watchdog_check_at:
+        """``preempt`` before a status read, when a command waits or a watchdog may be due.
+
+        Also before it: a drive whose comm-loss timeout the cycle is about to outlast
+        (slow replies) has it raised now (``DriveController.keep_alive``).
+        """
+        now = self._clock()
+        if now >= self._keep_alive_check_at:
+            serving = self._serving()
+            for controller in serving:
+                if controller.keep_alive_at() <= now:
+                    controller.keep_alive()
+            self._plan_keep_alive(serving)
+        if not self._command_waiting and now < self._watchdog_check_at:
             return
         self._command_waiting = False
         self.preempt()
         self._plan_watchdog_check()
+
+    def _plan_keep_alive(self, controllers: Sequence[DriveController]) -> None:
+        """Note the earliest moment a drive nears its comm-loss timeout unaddressed."""
+        self._keep_alive_check_at = min((c.keep_alive_at() for c in controllers),
+                                        default=math.inf)
 
     def _plan_watchdog_check(self) -> None:
         """Note the earliest moment a running drive's watchdog can expire (or never)."""

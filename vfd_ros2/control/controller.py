@@ -170,6 +170,8 @@ class DriveController:
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
+        self._near_trips = 0            # gaps in a row near the comm-loss timeout
+        self._raise_refused = 0.0       # a comm-loss timeout this connection could not write
         self._check_comm_fault = False   # the first reading after a connect is not read yet
         self._comm_fault_grace_until = -math.inf
         self._comm_faults_cleared = 0
@@ -501,11 +503,12 @@ class DriveController:
             self.drive.display_period = display_period(config.shown_period, config.cycle_period)
             try:
                 polled_at = self._clock()
+                gap = None if self._polled_at is None else polled_at - self._polled_at
+                self._polled_at = polled_at
                 self._reading = self.drive.poll(self._cycle, preempt=self._preempt_reads)
                 self._cycle += 1
-                if self._polled_at is not None:
-                    self._check_addressing(polled_at - self._polled_at)
-                self._polled_at = polled_at
+                if gap is not None:
+                    self._check_addressing(gap)
                 self._check_fault()
                 self._check_unexpected_motion()
                 self._actions.advance()
@@ -654,31 +657,44 @@ class DriveController:
         with self._lock:
             self._watchdog.reset()   # never resume from a command older than the link
         self._last_running = False
-        self._polled_at = None
+        self._running_idle_since, self._running_idle_counted = None, False
+        self._not_stopping = ''         # (nothing was written while it was offline)
+        self._polled_at, self._near_trips, self._raise_refused = None, 0, 0.0
         self._check_comm_fault = True
         # Online from here, but nothing is known of the drive's state until a status
         # read succeeds (the first may fail): hold it idle, never report "no fault".
         self._reading = Reading(unsafe=STATUS_NOT_READ)
         self.link.connected()
 
-    def _check_addressing(self, gap: float) -> None:
-        """Raise the drive's comm-loss timeout when its cycle nears it (``gap``: s between polls).
+    def _check_addressing(self, gap: float, urgent: bool = False) -> None:
+        """Raise the drive's comm-loss timeout when its cycle nears it (``gap``: s unpolled).
 
         The plan sizes the timeout from the wire time of a cycle; a drive that takes
         tens of ms to reply (legal within transport.timeout), or a loaded bus, stretches
         the cycle until the drive trips its own comm-loss fault although the host never
-        fell silent. Once a gap uses NEAR_TRIP of the timeout, the timeout is re-planned
-        for that gap and written (logged; ~/status and /diagnostics show it weaker than
-        requested, with why). It is never lowered again while the node runs.
+        fell silent. Two gaps in a row beyond NEAR_TRIP of the timeout (one is a hiccup),
+        or one that is ``urgent`` (the bus found the drive about to trip mid-cycle), have
+        it re-planned for the gap and written (logged; ~/status and /diagnostics show it
+        weaker than requested, and why). A gap past the timeout is a stall the drive has
+        answered with its comm-loss fault: raising would prevent nothing. Never lowered
+        while the node runs; a raise the drive or the register refuses is not tried again
+        until the next connect.
         """
         written = self._protection_written()
         refresh = getattr(self.drive, 'refresh_host_loss', None)
-        if refresh is None or not written.active or \
-                gap <= NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER):
+        if refresh is None or not written.active:
             return
-        plan = self.drive.host_loss_plan(self.config.drive_comm_timeout,
-                                         gap * ADDRESSING_HEADROOM)
-        if not plan.active or plan.timeout <= written.timeout:
+        near = NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER) < gap < written.timeout
+        self._near_trips = self._near_trips + 1 if near else 0
+        if not near or (self._near_trips < 2 and not urgent):
+            return
+        try:
+            plan = self.drive.host_loss_plan(self.config.drive_comm_timeout,
+                                             gap * ADDRESSING_HEADROOM)
+        except ParameterError as exc:           # beyond what the register takes
+            self._refuse_raise(math.inf, gap, exc)
+            return
+        if not plan.active or plan.timeout <= max(written.timeout, self._raise_refused):
             return
         plan = replace(plan, note=f'raised from {written.timeout:g} s: {gap:.2f} s passed '
                        'between two polls (slow replies or a loaded link)' +
@@ -686,11 +702,48 @@ class DriveController:
         try:
             refresh(plan)
         except ProtocolException as exc:
-            log.error('%s: the comm-loss timeout could not be raised to %g s for a cycle of '
-                      '%.2f s: %s', self.drive.hardware_id, plan.timeout, gap, exc)
+            self._refuse_raise(plan.timeout, gap, exc)
             return
         self.protection, self.protection_applied = plan, None
+        self._near_trips = 0
         log.warning('%s: host-loss protection %s', self.drive.hardware_id, plan.describe())
+
+    def _refuse_raise(self, target: float, gap: float, exc: VfdError) -> None:
+        """Remember a raise that cannot be written (until the next connect), and say so once."""
+        self._raise_refused = target
+        log.error('%s: the comm-loss timeout cannot be raised for a cycle of %.2f s (%s): the '
+                  'drive may trip its comm-loss fault', self.drive.hardware_id, gap, exc)
+
+    def keep_alive_at(self) -> float:
+        """When this drive, unpolled until then, nears its comm-loss timeout (inf: never).
+
+        On a bus the others' exchanges come between two polls of a drive: when
+        their replies are slow, one cycle can outlast its timeout. The bus asks
+        this before each exchange and calls ``keep_alive`` once it has come.
+        """
+        if self._polled_at is None or not self.link.online or \
+                getattr(self.drive, 'refresh_host_loss', None) is None:
+            return math.inf
+        written = self._protection_written()
+        if not written.active:
+            return math.inf
+        return self._polled_at + NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER)
+
+    def keep_alive(self) -> None:
+        """Raise the comm-loss timeout of a drive about to go unaddressed too long, now.
+
+        The write addresses the drive (any valid request restarts its timer), so
+        the time since it was addressed starts again from here.
+        """
+        if self._polled_at is None or not self.link.online:
+            return
+        now = self._clock()
+        try:
+            self._check_addressing(now - self._polled_at, urgent=True)
+        except TransportError as exc:
+            self._link_failed(exc)
+            return
+        self._polled_at = now
 
     def _reconnect_delay(self) -> float:
         """Keep a drive with a comm-loss timeout addressed within it while reconnecting.

@@ -29,8 +29,8 @@ class RateWatch:
     """The cycles per second a loop achieves, and whether it runs short of its rate.
 
     ``sample`` is called by a diagnostics timer. It judges windows of at least
-    RATE_WINDOW (a faster timer gets the last judgement), and one slow window (a
-    connect, a collection) is not enough: two in a row are.
+    RATE_WINDOW and two periods (a faster timer gets the last judgement), and one
+    slow window (a connect, a collection) is not enough: two in a row are.
     """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
@@ -42,7 +42,7 @@ class RateWatch:
         """Return (cycles/s in the last window judged, short in it and in the one before)."""
         now = self._clock()
         then, before, was_short = self._window
-        if now - then < RATE_WINDOW:
+        if now - then < max(RATE_WINDOW, 2 * period):     # (a slow loop: whole cycles)
             return self._last
         rate = max(cycles - before, 0) / (now - then)
         short = cycles >= before and rate < RATE_SHORTFALL / period

@@ -350,7 +350,8 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
         self.stopbits = stopbits
         self.bytesize = bytesize
         self.timeout = timeout
-        # (function, unit, address, count or value) -> its request and frame (read_registers)
+        # (function, unit, address, count or value) -> its request, frame and counters: the
+        # cycle's reads and single writes (read_registers, write_register)
         self._frames: dict[tuple[int, ...], _KeptRequest] = {}
         self._link = RtuLink(port, baudrate, parity, stopbits, bytesize, timeout,
                              frame_gap_s=frame_gap, late_reply_guard=late_reply_guard,
@@ -432,7 +433,7 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
         """Keep ``request``, its frame and its unit's counters under ``key`` (see ``_keep``)."""
         if len(self._frames) >= REQUESTS_KEPT:
             self._frames.clear()
-        kept = self._frames[key] = _KeptRequest(request, self._link.frame(request),
+        kept = self._frames[key] = _KeptRequest(request, self._link.build_frame(request),
                                                 self.stats_for(request.dev_id))
         return kept
 

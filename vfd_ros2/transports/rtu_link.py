@@ -242,13 +242,12 @@ class RtuLink:
                 if not data:
                     self._hold[unit] = time.monotonic() + self.late_reply_guard
                     self._quiet_from = time.monotonic()
-                    if instead:
-                        # Not a silent drive: a wrong reply came (another unit's, or another
-                        # function's). A bad frame, retried once by the drive layer (after
-                        # the guard), not a timeout that counts towards offline.
-                        raise LinkBadFrame(f'no reply: {_came_instead(instead[-1], unit)}',
-                                           instead[-1])
-                    raise LinkTimeout('no reply')
+                    # A wrong reply that came instead (another unit's, another function's)
+                    # is named, but the exchange is a timeout all the same: it cost one,
+                    # and a retry would cost the late-reply guard and another (a bus plans
+                    # a failed exchange at one timeout).
+                    raise LinkTimeout('no reply' if not instead else
+                                      f'no reply ({_came_instead(instead[-1], unit)})')
                 if size != len(data) or crc16(data):   # (over a whole frame the CRC leaves 0)
                     self._resync()
                     raise LinkBadFrame('malformed reply', data)
@@ -294,15 +293,19 @@ class RtuLink:
         from its function, unit, address, count and values alone.
         """
         if request.function_code not in _KEPT_FUNCTIONS:
-            return self._framer.buildFrame(request)
+            return self.build_frame(request)
         key = (request.function_code, request.dev_id, request.address, request.count,
                *request.registers)
         frame = self._frames.get(key)
         if frame is None:
             if len(self._frames) >= FRAMES_KEPT:
                 self._frames.clear()
-            frame = self._frames[key] = self._framer.buildFrame(request)
+            frame = self._frames[key] = self.build_frame(request)
         return frame
+
+    def build_frame(self, request: ModbusPDU) -> bytes:
+        """Return the frame of ``request`` as pymodbus builds it (not kept here)."""
+        return self._framer.buildFrame(request)
 
     # --- internals ----------------------------------------------------------------
 
