@@ -12,9 +12,11 @@ ever releasing the GIL, which starves the drives' control threads.
 from __future__ import annotations
 
 import gc
+import logging
 import os
 import sys
 import threading
+import traceback
 from typing import Callable, Iterable
 
 import rclpy
@@ -46,9 +48,10 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     except _rclpy.RCLError as exc:      # e.g. a --params-file that does not parse
         print(f'{name}: cannot start (check --ros-args and --params-file): {exc}')
         return 1
-    node = executor = None
+    node = executor = bridge = None
     try:
         node = make_node()
+        bridge = RosLogBridge(node)
         executor = make_executor()
         for each in (node, *extra_nodes(node)):
             executor.add_node(each)
@@ -66,8 +69,53 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
             executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
+        if bridge is not None:
+            bridge.remove()
         rclpy.try_shutdown()
     return 0
+
+
+class RosLogBridge(logging.Handler):
+    """The driver's layers below ROS log with Python ``logging``; this hands it to ROS.
+
+    Without it their records (a drive offline, a fault, a drive that does not stop)
+    went to stderr unformatted, INFO not at all, and never to /rosout (rqt_console,
+    a robot's log recorder). They go to the node's logger, at their level.
+    """
+
+    def __init__(self, node: Node, logger_name: str = 'vfd_ros2') -> None:
+        super().__init__(logging.INFO)
+        self._log = node.get_logger()
+        self._python_logger = logging.getLogger(logger_name)
+        self._kept = (self._python_logger.level, self._python_logger.propagate)
+        self._python_logger.addHandler(self)
+        self._python_logger.setLevel(logging.INFO)
+        self._python_logger.propagate = False   # (else also Python's last-resort stderr)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            message = record.getMessage()
+            if record.exc_info:
+                message += '\n' + ''.join(traceback.format_exception(*record.exc_info))
+            level = record.levelno
+            if level >= logging.CRITICAL:
+                self._log.fatal(message)
+            elif level >= logging.ERROR:
+                self._log.error(message)
+            elif level >= logging.WARNING:
+                self._log.warning(message)
+            elif level >= logging.INFO:
+                self._log.info(message)
+            else:
+                self._log.debug(message)
+        except Exception:  # noqa: BLE001 - logging must never raise into a control thread
+            self.handleError(record)
+
+    def remove(self) -> None:
+        """Stop bridging (the node goes): Python logging as it was."""
+        self._python_logger.removeHandler(self)
+        self._python_logger.setLevel(self._kept[0])
+        self._python_logger.propagate = self._kept[1]
 
 
 def settle_heap() -> None:
