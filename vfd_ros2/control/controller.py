@@ -171,6 +171,7 @@ class DriveController:
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
         self._near_trips = 0            # gaps in a row near the comm-loss timeout
+        self._near_trip_after = math.inf   # s unpolled that is near it (_note_near_trip)
         self._raise_refused = 0.0       # a comm-loss timeout this connection could not write
         self._check_comm_fault = False   # the first reading after a connect is not read yet
         self._comm_fault_grace_until = -math.inf
@@ -665,6 +666,7 @@ class DriveController:
         # read succeeds (the first may fail): hold it idle, never report "no fault".
         self._reading = Reading(unsafe=STATUS_NOT_READ)
         self.link.connected()
+        self._note_near_trip()          # (what was written counts from here: connected)
 
     def _check_addressing(self, gap: float, urgent: bool = False) -> None:
         """Raise the drive's comm-loss timeout when its cycle nears it (``gap``: s unpolled).
@@ -680,13 +682,15 @@ class DriveController:
         while the node runs; a raise the drive or the register refuses is not tried again
         until the next connect.
         """
-        written = self._protection_written()
-        refresh = getattr(self.drive, 'refresh_host_loss', None)
-        if refresh is None or not written.active:
+        if gap <= self._near_trip_after:        # (every cycle: the one comparison)
+            self._near_trips = 0
             return
-        near = NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER) < gap < written.timeout
-        self._near_trips = self._near_trips + 1 if near else 0
-        if not near or (self._near_trips < 2 and not urgent):
+        written = self._protection_written()
+        if gap >= written.timeout:
+            self._near_trips = 0
+            return
+        self._near_trips += 1
+        if self._near_trips < 2 and not urgent:
             return
         try:
             plan = self.drive.host_loss_plan(self.config.drive_comm_timeout,
@@ -700,12 +704,13 @@ class DriveController:
                        'between two polls (slow replies or a loaded link)' +
                        (f'; {plan.note}' if plan.note else ''))
         try:
-            refresh(plan)
+            self.drive.refresh_host_loss(plan)
         except ProtocolException as exc:
             self._refuse_raise(plan.timeout, gap, exc)
             return
         self.protection, self.protection_applied = plan, None
         self._near_trips = 0
+        self._note_near_trip()
         log.warning('%s: host-loss protection %s', self.drive.hardware_id, plan.describe())
 
     def _refuse_raise(self, target: float, gap: float, exc: VfdError) -> None:
@@ -714,6 +719,16 @@ class DriveController:
         log.error('%s: the comm-loss timeout cannot be raised for a cycle of %.2f s (%s): the '
                   'drive may trip its comm-loss fault', self.drive.hardware_id, gap, exc)
 
+    def _note_near_trip(self) -> None:
+        """Note how long the drive may go unpolled before ``_check_addressing`` acts (inf: never).
+
+        Only a drive whose comm-loss timeout can be written while it runs
+        (``refresh_host_loss``) and is written (active).
+        """
+        written = self._protection_written()
+        self._near_trip_after = NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER) \
+            if written.active and hasattr(self.drive, 'refresh_host_loss') else math.inf
+
     def keep_alive_at(self) -> float:
         """When this drive, unpolled until then, nears its comm-loss timeout (inf: never).
 
@@ -721,13 +736,9 @@ class DriveController:
         their replies are slow, one cycle can outlast its timeout. The bus asks
         this before each exchange and calls ``keep_alive`` once it has come.
         """
-        if self._polled_at is None or not self.link.online or \
-                getattr(self.drive, 'refresh_host_loss', None) is None:
+        if self._polled_at is None or not self.link.online:
             return math.inf
-        written = self._protection_written()
-        if not written.active:
-            return math.inf
-        return self._polled_at + NEAR_TRIP * (written.timeout - HOST_LOSS_JITTER)
+        return self._polled_at + self._near_trip_after
 
     def keep_alive(self) -> None:
         """Raise the comm-loss timeout of a drive about to go unaddressed too long, now.
