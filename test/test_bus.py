@@ -728,7 +728,7 @@ def test_a_slow_loop_on_its_rate_is_not_short_however_often_it_is_sampled():
         cycles = int((clock.now - start) / 2.0)           # exactly on its 2 s period
         verdicts.append(watch.sample(cycles, 2.0)[1])
     assert not any(verdicts)
-    for _ in range(24):                                   # then at half its rate: short
+    for _ in range(48):                                   # then at half its rate: short
         clock.now += 0.5
         cycles += 1 if round(clock.now * 2) % 8 == 0 else 0
         verdicts.append(watch.sample(cycles, 2.0)[1])

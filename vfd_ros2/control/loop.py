@@ -21,16 +21,18 @@ LOOP_ERROR_KINDS = 32
 
 #: below this fraction of its rate over two windows running, a loop is said to run short
 RATE_SHORTFALL = 0.9
-#: s, the shortest window RateWatch judges
+#: s, the shortest window RateWatch judges, and the longest it waits for two cycles in one
 RATE_WINDOW = 0.5
+RATE_WINDOW_LONGEST = 10.0
 
 
 class RateWatch:
     """The cycles per second a loop achieves, and whether it runs short of its rate.
 
     ``sample`` is called by a diagnostics timer. It judges windows of at least
-    RATE_WINDOW and two periods (a faster timer gets the last judgement), and one
-    slow window (a connect, a collection) is not enough: two in a row are.
+    RATE_WINDOW, two periods and two cycles (up to RATE_WINDOW_LONGEST: a stalled loop
+    is judged too; a faster timer gets the last judgement), and one slow window (a
+    connect, a collection) is not enough: two in a row are.
     """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
@@ -42,9 +44,11 @@ class RateWatch:
         """Return (cycles/s in the last window judged, short in it and in the one before)."""
         now = self._clock()
         then, before, was_short = self._window
-        if now - then < max(RATE_WINDOW, 2 * period):     # (a slow loop: whole cycles)
-            return self._last
-        rate = max(cycles - before, 0) / (now - then)
+        elapsed = now - then
+        if elapsed < max(RATE_WINDOW, 2 * period) or \
+                (cycles - before < 2 and elapsed < RATE_WINDOW_LONGEST):
+            return self._last       # (a figure of whole cycles: 0 or 1 in a window says little)
+        rate = max(cycles - before, 0) / elapsed
         short = cycles >= before and rate < RATE_SHORTFALL / period
         self._window = (now, cycles, short)
         self._last = (rate, short and was_short)
