@@ -29,16 +29,20 @@ def test_a_drive_going_offline_is_on_rosout_at_its_level(ros_context):
     spin = spin_in_background(executor, ros_context)
     python_logger = logging.getLogger('vfd_ros2')
     before = (python_logger.level, python_logger.propagate)
-    bridge = RosLogBridge(node)
+    bridge = RosLogBridge()       # as run_node: before the node (a loop may start in it)
     try:
-        logging.getLogger('vfd_ros2.control.link').warning('%s offline: %s', 'drive x', 'no reply')
-        logging.getLogger('vfd_ros2.control.link').info('drive x online')
-        logging.getLogger('vfd_ros2.control.link').debug('not shown at INFO')
+        link_log = logging.getLogger('vfd_ros2.control.link')
+        link_log.warning('drive x: connect failed: %s', 'cannot open /dev/ttyUSB0')  # held
+        bridge.attach(node)
+        link_log.warning('%s offline: %s', 'drive x', 'no reply')
+        link_log.info('drive x online')
+        link_log.debug('not shown at INFO')
 
         def from_node() -> list[tuple[int, str]]:
             return [(m.level, m.msg) for m in heard if m.name == node.get_logger().name]
-        wait_for(lambda: len(from_node()) >= 2, 5.0, 'both records on /rosout')
-        assert from_node() == [(Log.WARN, 'drive x offline: no reply'),
+        wait_for(lambda: len(from_node()) >= 3, 5.0, 'the records on /rosout')
+        assert from_node() == [(Log.WARN, 'drive x: connect failed: cannot open /dev/ttyUSB0'),
+                               (Log.WARN, 'drive x offline: no reply'),
                                (Log.INFO, 'drive x online')]
     finally:
         bridge.remove()
@@ -48,3 +52,11 @@ def test_a_drive_going_offline_is_on_rosout_at_its_level(ros_context):
         tester.destroy_node()
     assert (python_logger.level, python_logger.propagate) == before
     assert bridge not in python_logger.handlers
+
+
+def test_records_held_for_a_node_that_never_came_go_to_stderr(capsys):
+    """A node refused at start: what its layers logged meanwhile is not lost."""
+    bridge = RosLogBridge()
+    logging.getLogger('vfd_ros2.drives.modbus').warning('C02.04 refused')
+    bridge.remove()
+    assert '[WARNING] C02.04 refused' in capsys.readouterr().err

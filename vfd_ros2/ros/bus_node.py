@@ -72,7 +72,7 @@ def bus_diagnostic(name: str, hardware_id: str, stats: BusStatistics,
              ('cycle overruns', stats.overruns), ('drives online', f'{drives_online}/{drives}')]
     status.values = [KeyValue(key=k, value=str(v)) for k, v in pairs]
     add_loop_rate(status, stats.cycles_per_second, stats.rate_short and not closed,
-                  control_rate)
+                  control_rate, drives)
     return status
 
 

@@ -24,6 +24,7 @@ from rclpy.context import Context
 from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
 
 from ..errors import VfdError
@@ -48,10 +49,11 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     except _rclpy.RCLError as exc:      # e.g. a --params-file that does not parse
         print(f'{name}: cannot start (check --ros-args and --params-file): {exc}')
         return 1
-    node = executor = bridge = None
+    node = executor = None
+    bridge = RosLogBridge()
     try:
         node = make_node()
-        bridge = RosLogBridge(node)
+        bridge.attach(node)
         executor = make_executor()
         for each in (node, *extra_nodes(node)):
             executor.add_node(each)
@@ -69,8 +71,7 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
             executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
-        if bridge is not None:
-            bridge.remove()
+        bridge.remove()
         rclpy.try_shutdown()
     return 0
 
@@ -80,39 +81,65 @@ class RosLogBridge(logging.Handler):
 
     Without it their records (a drive offline, a fault, a drive that does not stop)
     went to stderr unformatted, INFO not at all, and never to /rosout (rqt_console,
-    a robot's log recorder). They go to the node's logger, at their level.
+    a robot's log recorder). They go to the node's logger, at their level. Installed
+    before the node is made: a plain node's loop starts in its constructor and logs
+    its first connect at once; those records wait (``HELD_RECORDS`` at most) until
+    ``attach`` names the node, or go to stderr if no node comes.
     """
 
-    def __init__(self, node: Node, logger_name: str = 'vfd_ros2') -> None:
+    #: records kept until the node exists (a start-up's connect attempts and notes)
+    HELD_RECORDS = 200
+
+    def __init__(self, logger_name: str = 'vfd_ros2') -> None:
         super().__init__(logging.INFO)
-        self._log = node.get_logger()
+        self._log: RcutilsLogger | None = None
+        self._held: list[logging.LogRecord] = []
         self._python_logger = logging.getLogger(logger_name)
         self._kept = (self._python_logger.level, self._python_logger.propagate)
         self._python_logger.addHandler(self)
         self._python_logger.setLevel(logging.INFO)
         self._python_logger.propagate = False   # (else also Python's last-resort stderr)
 
+    def attach(self, node: Node) -> None:
+        """Send the records to ``node``'s logger from now on, those held first."""
+        with self.lock:             # (emit runs under it, from any thread)
+            self._log = node.get_logger()
+            held, self._held = self._held, []
+            for record in held:
+                self._to_ros(record)
+
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            message = record.getMessage()
-            if record.exc_info:
-                message += '\n' + ''.join(traceback.format_exception(*record.exc_info))
-            level = record.levelno
-            if level >= logging.CRITICAL:
-                self._log.fatal(message)
-            elif level >= logging.ERROR:
-                self._log.error(message)
-            elif level >= logging.WARNING:
-                self._log.warning(message)
-            elif level >= logging.INFO:
-                self._log.info(message)
-            else:
-                self._log.debug(message)
+            if self._log is None:
+                if len(self._held) < self.HELD_RECORDS:
+                    self._held.append(record)
+                return
+            self._to_ros(record)
         except Exception:  # noqa: BLE001 - logging must never raise into a control thread
             self.handleError(record)
 
+    def _to_ros(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if record.exc_info:
+            message += '\n' + ''.join(traceback.format_exception(*record.exc_info))
+        level, log = record.levelno, self._log
+        if level >= logging.CRITICAL:
+            log.fatal(message)
+        elif level >= logging.ERROR:
+            log.error(message)
+        elif level >= logging.WARNING:
+            log.warning(message)
+        elif level >= logging.INFO:
+            log.info(message)
+        else:
+            log.debug(message)
+
     def remove(self) -> None:
-        """Stop bridging (the node goes): Python logging as it was."""
+        """Stop bridging (the node goes): Python logging as it was; held records to stderr."""
+        with self.lock:
+            held, self._held = self._held, []
+        for record in held:
+            print(f'[{record.levelname}] {record.getMessage()}', file=sys.stderr)
         self._python_logger.removeHandler(self)
         self._python_logger.setLevel(self._kept[0])
         self._python_logger.propagate = self._kept[1]

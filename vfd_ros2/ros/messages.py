@@ -97,7 +97,7 @@ def fault_message(fault: FaultInfo, active: bool, stamp: Time, hardware_id: str)
 
 
 def add_loop_rate(status: DiagnosticStatus, cycles_per_second: float, short: bool,
-                  control_rate: float) -> None:
+                  control_rate: float, drives: int = 1) -> None:
     """Show a control loop's achieved rate; WARN while it runs short of ``control_rate``.
 
     Every status read, watchdog stop and host-loss margin comes later than the rate
@@ -106,9 +106,10 @@ def add_loop_rate(status: DiagnosticStatus, cycles_per_second: float, short: boo
     status.values.append(KeyValue(key='cycles/s', value=f'{cycles_per_second:.1f}'))
     if not short or status.level not in (DiagnosticStatus.OK, DiagnosticStatus.WARN):
         return
+    remedy = 'fewer drives on the link, ' if drives > 1 else ''
     text = (f'the control loop runs {cycles_per_second:.1f} cycles/s of control_rate '
-            f'{control_rate:g} Hz: the link does not sustain it (lower control_rate, or fewer '
-            'drives or a faster link)')
+            f'{control_rate:g} Hz: the link or the host does not sustain it (lower '
+            f'control_rate, or {remedy}a faster link or a less loaded host)')
     status.message = text if status.level == DiagnosticStatus.OK else \
         f'{status.message}; {text}'
     status.level = DiagnosticStatus.WARN
