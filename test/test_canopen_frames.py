@@ -221,6 +221,8 @@ def test_a_synchronous_rpdo_takes_effect_at_the_sync_that_ends_the_burst(channel
         transport.end_command_burst()
         wait_for(lambda: twin.target_raw == 500, 2.0, 'RPDO1 applied at SYNC')
         assert transport.syncs == 1 and twin.syncs_received == 1
+        # the sniffer's notifier thread may record the SYNC after the twin has applied it
+        wait_for(lambda: (0x80, b'') in sniffer.frames, 2.0, 'SYNC seen by the sniffer')
         rpdo_at = sniffer.frames.index((0x201, bytes.fromhex('0600 F4010000')))
         assert sniffer.frames.index((0x80, b'')) > rpdo_at
         # the twin answers the SYNC with its synchronous TPDO1 (status word first)
@@ -278,7 +280,10 @@ def test_no_sync_where_the_drive_is_event_driven_or_another_device_produces_it(c
         producer.shutdown()
         sim_bus.stop()
     assert not any(cob == 0x80 for cob, _ in sniffer.frames)
-    assert sum(cob == 0x80 for cob, _ in sniffer_b.frames) == produced[0] > 0
+    # the sniffer's notifier thread may still be taking the last SYNCs off its queue
+    wait_for(lambda: sum(cob == 0x80 for cob, _ in sniffer_b.frames) == produced[0], 2.0,
+             'every SYNC produced seen by the sniffer')
+    assert produced[0] > 0
     sniffer.close()
     sniffer_b.close()
 
