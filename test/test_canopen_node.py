@@ -13,8 +13,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
 from harness import wait_for
 from vfd_ros2.protocol.cia402 import State
+from vfd_ros2.protocol.repeats import RepeatSummary
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
-from vfd_ros2.transports.canopen import RepeatSummary, open_channels
+from vfd_ros2.transports.canopen import open_channels
 
 
 def test_command_status_and_watchdog(make_can_harness):
@@ -627,3 +628,22 @@ def test_a_second_host_on_the_channel_is_named(make_can_harness):
     assert 'two SYNC producers' in message and 'a second host commands this drive' in message
     # not the host heartbeat's COB-ID: socketcan loops a periodic task's own frames back
     assert 'node 127' not in message
+
+
+def test_repeat_throttle_tells_each_kind_once_per_period_and_what_was_left():
+    from vfd_ros2.protocol.repeats import RepeatThrottle
+    throttle = RepeatThrottle(period=10.0, max_kinds=2)
+    assert throttle.note('a', 0.0).first
+    assert throttle.note('a', 1.0) is None and throttle.note('a', 2.0) is None
+    assert throttle.untold == 2 and throttle.due(5.0) == []
+    told = throttle.note('a', 10.5)                 # its period is over: told, with the rest
+    assert (told.repeats, told.seconds, told.first) == (2, 10.5, False)
+    assert throttle.untold == 0
+    assert throttle.note('b', 11.0).first and throttle.note('b', 12.0) is None
+    assert throttle.note('c', 13.0).first           # a third kind: 'a', the oldest, goes
+    assert throttle.note('a', 14.0).first           # ... and 'b' with its untold repeat
+    assert throttle.untold == 0
+    assert throttle.note('a', 15.0) is None
+    assert throttle.due(20.0) == [] and throttle.due(24.0) == [('a', 1, 10.0, False)]
+    assert throttle.note('c', 16.0) is None
+    assert throttle.due(16.5, at_end=True) == [('c', 1, 3.5, False)]

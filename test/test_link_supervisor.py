@@ -42,3 +42,23 @@ def test_a_flapping_drive_is_logged_once_per_reason_and_period_with_the_repeats(
     online = [r for r in caplog.records if r.getMessage() == 'drive x online']
     assert len(online) == 3, 'the reconnects after an offline not logged are not logged'
     assert link.reconnects == 21                       # every one counted all the same
+
+
+def test_offlines_not_logged_are_summed_up_once_the_drive_stays_online(caplog):
+    """Flapping that stopped: the repeats counted in its last period are not lost."""
+    clock = StepClock()
+    link = LinkSupervisor('drive x', threshold=2, retry_period=0.5, clock=clock)
+    caplog.set_level(logging.INFO, logger='vfd_ros2.control.link')
+    for _ in range(5):
+        flap(link, clock, 'no reply')
+    link.connected()
+    link.cycle_ok()                                 # healthy, inside the period: quiet
+    lines = [r.getMessage() for r in caplog.records if 'offline' in r.getMessage()]
+    assert lines == ['drive x offline: no reply']
+    clock.now += OFFLINE_LOG_PERIOD
+    link.cycle_ok()
+    link.cycle_ok()                                 # told once
+    lines = [r.getMessage() for r in caplog.records if 'offline' in r.getMessage()]
+    assert lines == ['drive x offline: no reply',
+                     f'drive x was offline 4 times more in the last '
+                     f'{OFFLINE_LOG_PERIOD + 2.0:.0f} s: no reply']

@@ -7,6 +7,7 @@ import time
 from typing import Callable
 
 from ..errors import VfdError
+from ..protocol.repeats import RepeatThrottle
 
 log = logging.getLogger(__name__)
 
@@ -39,9 +40,9 @@ class LinkSupervisor:
         self._failed_this_cycle = False
         self._next_attempt = 0.0
         self._connect_error = ''     # the last connect failure logged (each reason once)
-        # reason -> [when last logged, times offline for it since]; quiet: the last
-        # offline was not logged, nor is the reconnect after it
-        self._offline_told: dict[str, list] = {}
+        # going offline, per reason; quiet: the last offline was not logged, nor is
+        # the reconnect after it
+        self._offline_log = RepeatThrottle(OFFLINE_LOG_PERIOD)
         self._quiet = False
 
     @property
@@ -74,6 +75,8 @@ class LinkSupervisor:
         if self.error != self._connect_error:
             self._connect_error = self.error
             log.warning('%s: connect failed: %s', self.name, self.error)
+        if self._offline_log.untold:
+            self._tell_untold()
 
     def drop(self, reason: str) -> None:
         """Go offline now and connect afresh at once (the drive must be configured again)."""
@@ -84,22 +87,24 @@ class LinkSupervisor:
 
     def _tell_offline(self, reason: str) -> None:
         """Log going offline: once per reason and OFFLINE_LOG_PERIOD, with the repeats since."""
-        now = self._clock()
-        told = self._offline_told.get(reason)
-        if told is not None and now - told[0] < OFFLINE_LOG_PERIOD:
-            told[1] += 1
-            self._quiet = True
+        told = self._offline_log.note(reason, self._clock())
+        self._quiet = told is None
+        if told is None:
             return
-        repeats = f' (and {told[1]} times more in the last {now - told[0]:.0f} s)' \
-            if told is not None and told[1] else ''
+        repeats = f' (and {told.repeats} times more in the last {told.seconds:.0f} s)' \
+            if told.repeats else ''
         log.warning('%s offline: %s%s', self.name, reason, repeats)
-        if len(self._offline_told) >= 32:       # reasons that name values may vary freely
-            self._offline_told.clear()
-        self._offline_told[reason] = [now, 0]
-        self._quiet = False
+
+    def _tell_untold(self) -> None:
+        """Log the offlines not logged yet once their period is over (the flapping stopped)."""
+        for untold in self._offline_log.due(self._clock()):
+            log.warning('%s was offline %d times more in the last %.0f s: %s', self.name,
+                        untold.repeats, untold.seconds, untold.kind)
 
     def cycle_ok(self) -> None:
         self._failed_cycles = 0
+        if self._offline_log.untold:
+            self._tell_untold()
 
     def cycle_failed(self, exc: VfdError) -> bool:
         """Count a failed exchange; return True when the drive just went offline."""

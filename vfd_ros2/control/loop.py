@@ -10,6 +10,7 @@ import traceback
 from typing import Callable
 
 from ..protocol.linux_thread import name_os_thread
+from ..protocol.repeats import RepeatThrottle
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +94,7 @@ class CycleLoop:
         self.overruns = 0
         self.cycles = 0                 # steps run (the rate achieved, beside control_rate)
         self.errors = 0
-        self._error_kinds: dict[str, list] = {}    # error kind -> [last logged, repeats since]
-        self._repeats_untold = False    # some repeats counted and not logged yet
+        self._error_log = RepeatThrottle(LOOP_ERROR_LOG_PERIOD, LOOP_ERROR_KINDS)
 
     def start(self) -> None:
         self._thread.start()
@@ -134,7 +134,7 @@ class CycleLoop:
     def _guarded(self, call: Callable[[], None]) -> None:
         try:
             call()
-            if self._repeats_untold:
+            if self._error_log.untold:
                 self._tell_repeats()
         except Exception as exc:  # noqa: BLE001 - the loop must survive anything
             self.errors += 1
@@ -143,31 +143,25 @@ class CycleLoop:
             # one line at most every LOOP_ERROR_LOG_PERIOD, with its count.
             where = traceback.extract_tb(exc.__traceback__)[-1]
             kind = f'{type(exc).__name__} at {where.filename}:{where.lineno}'
-            seen = self._error_kinds.get(kind)
-            if seen is None:
-                if len(self._error_kinds) >= LOOP_ERROR_KINDS:     # bounded: the oldest goes
-                    self._error_kinds.pop(next(iter(self._error_kinds)))
-                self._error_kinds[kind] = [time.monotonic(), 0]
+            told = self._error_log.note(kind, time.monotonic())
+            if told is None:
+                return
+            if told.first:
                 log.exception('%s: loop error: %s', self.name, exc)
-            else:
-                seen[1] += 1
-                self._tell_repeats()
+            else:           # its period is over: this one and those counted since
+                log.error('%s: loop error again (%d more times, %s)', self.name,
+                          told.repeats + 1, kind)
 
     def _tell_repeats(self, at_end: bool = False) -> None:
         """Log the repeats counted and not yet told, once their period is over.
 
-        Called on a repeat, and after a good step while some are untold: an error
-        that repeated a few times and stopped is told too (at the latest when the
-        loop ends), not only one that comes back after the period.
+        Called after a good step while some are untold: an error that repeated a few
+        times and stopped is told too (at the latest when the loop ends), not only
+        one that comes back after the period.
         """
-        now = time.monotonic()
-        self._repeats_untold = False
-        for kind, seen in self._error_kinds.items():
-            if seen[1] and (at_end or now - seen[0] >= LOOP_ERROR_LOG_PERIOD):
-                log.error('%s: loop error again (%d more times, %s)', self.name, seen[1], kind)
-                seen[:] = [now, 0]
-            elif seen[1]:
-                self._repeats_untold = True
+        for untold in self._error_log.due(time.monotonic(), at_end):
+            log.error('%s: loop error again (%d more times, %s)', self.name, untold.repeats,
+                      untold.kind)
 
     def _run(self) -> None:
         name_os_thread(f'vfd {self.name}')
@@ -197,5 +191,5 @@ class CycleLoop:
                 if self._preempt is not None and not self._stop.is_set():
                     self._guarded(self._preempt)
         self._guarded(self._finish)
-        if self._repeats_untold:
+        if self._error_log.untold:
             self._tell_repeats(at_end=True)

@@ -48,9 +48,10 @@ from ..profiles import (
     describe_fault,
 )
 from ..protocol.cia402 import State
+from ..protocol.repeats import RepeatSummary
 from ..protocol.scaling import VelocityScaling
 from ..transports.base import TransportParameter
-from ..transports.canopen import SYNCHRONOUS_MAX, CanopenTransport, ObjectEntry, RepeatSummary
+from ..transports.canopen import SYNCHRONOUS_MAX, CanopenTransport, ObjectEntry
 from .base import (
     HOST_LOSS_JITTER,
     DriveOnLink,

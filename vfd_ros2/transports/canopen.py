@@ -32,7 +32,7 @@ import struct
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Hashable, Iterable, Mapping, NamedTuple
+from typing import Any, Callable, Iterable, Mapping, NamedTuple
 
 import can
 import canopen
@@ -48,6 +48,7 @@ from ..errors import (
     ProtocolException,
     TransportError,
 )
+from ..protocol.repeats import RepeatSummary
 from ..protocol.values import ValueType
 from .base import Transport, TransportParameter
 
@@ -200,47 +201,6 @@ def _codec(index: int, subindex: int, value_type: ValueType) -> od.ODVariable:
 #: options would make the call fail with a TypeError, or silently win)
 _OWN_ARGUMENTS = {'interface': 'transport.interface', 'channel': 'transport.channel',
                   'bitrate': 'transport.bitrate'}
-
-
-class RepeatSummary:
-    """Which of a stream of repeating events to log: the first of each kind, then sums.
-
-    A babbling node repeats one frame (or one EMCY) without end; the log must
-    show each kind once and how often it came, not each frame. ``first(key)`` is
-    True for a key not seen since ``forget`` (while fewer than ``max_keys`` are
-    known); any other event is a repeat, and ``due()`` returns how many repeats
-    to sum up in one line, at most once per ``period`` s after the last line
-    (0 otherwise). Callers serialise the calls (a lock, or one thread).
-    """
-
-    def __init__(self, period: float = 10.0, max_keys: int | None = None) -> None:
-        self.period = period
-        self._max_keys = max_keys
-        self._seen: set[Hashable] = set()
-        self._repeats = 0
-        self._quiet_until = 0.0     # no summary line before this (monotonic s)
-
-    def first(self, key: Hashable, now: float) -> bool:
-        """Return whether to log this event in full; otherwise it is counted as a repeat."""
-        if key in self._seen or (self._max_keys is not None and
-                                 len(self._seen) >= self._max_keys):
-            self._repeats += 1
-            return False
-        self._seen.add(key)
-        self._quiet_until = max(self._quiet_until, now + self.period)
-        return True
-
-    def due(self, now: float) -> int:
-        """Return the repeats to sum up now (then counted afresh), or 0."""
-        if not self._repeats or now < self._quiet_until:
-            return 0
-        repeats, self._repeats = self._repeats, 0
-        self._quiet_until = now + self.period
-        return repeats
-
-    def forget(self) -> None:
-        """Log each kind in full once more (e.g. after the drive's error reset)."""
-        self._seen.clear()
 
 
 class MalformedFrames:
