@@ -324,8 +324,10 @@ def test_canopen_drives_on_one_can_interface_in_one_bus(tmp_path):
         time.sleep(0.4)
         cycles = first._cycle - cycles0                            # noqa: SLF001
         syncs = bus.transport.syncs - syncs0
-        assert cycles >= 10 and abs(syncs - cycles) <= 1, (syncs, cycles)
-        assert all(abs(sim.syncs_received - a - syncs) <= 1 for sim, a in zip(sims, applied0))
+        # (the sims count on the simulated bus's thread, which may lag the bus thread by
+        # a SYNC or two either way; one SYNC per drive would be twice as many)
+        assert cycles >= 5 and abs(syncs - cycles) <= 1, (syncs, cycles)
+        assert all(abs(sim.syncs_received - a - syncs) <= 3 for sim, a in zip(sims, applied0))
         sims[1].silent = True                   # node 2 dies
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline and second.state.online:

@@ -261,15 +261,19 @@ def test_a_flood_of_one_emcy_is_logged_once_and_kept_bounded(make_can_harness, c
                                                                      0, 0]),
                                     is_extended_id=False))
         consumer = transport._links[1].node.emcy               # noqa: SLF001
+
+        def lines(text: str) -> list[str]:
+            return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+        wait_for(lambda: lines('EMCY 0x4210'), 5.0, 'the first EMCY logged')
         wait_for(lambda: not consumer.log, 5.0, 'the EMCYs taken by the drive loop')
-        time.sleep(1.2)                    # past the summary period
+        # the repeats summed up past the summary period (more than one line if the
+        # library's notifier took longer than a period to hand the 2000 frames over)
+        summed = wait_for(lambda: lines('more EMCY frames'), 3.0, 'the repeats summed up')
         status = wheel.wait_status(lambda s: s.online, 2.0, 'still online')
         assert not status.fault
         assert len(consumer.active) <= 8
-        logged = [r for r in caplog.records if 'EMCY 0x4210' in r.getMessage()]
-        summed = [r for r in caplog.records if 'more EMCY frames' in r.getMessage()]
-        assert len(logged) == 1 and len(summed) == 1, [r.getMessage() for r in caplog.records]
-        assert int(summed[0].getMessage().split(': ')[1].split()[0]) <= 1999
+        assert len(lines('EMCY 0x4210')) == 1 and len(summed) <= 3, lines('EMCY')
+        assert sum(int(line.split(': ')[1].split()[0]) for line in summed) <= 1999
     finally:
         sender.shutdown()
 
@@ -484,8 +488,9 @@ def test_new_commands_wait_for_the_sync_cycle_but_a_watchdog_stop_does_not(make_
         stopped_after = time.monotonic() - last_command
     finally:
         listener.shutdown()
-    # within command_timeout and a margin, not up to a cycle (0.25 s) later
-    assert stopped_after < 0.5 + 0.1, stopped_after
+    # within command_timeout and a margin (a loaded machine's stall), not up to a cycle
+    # (0.25 s) later
+    assert stopped_after < 0.5 + 0.15, stopped_after
 
 
 def test_repeat_summary_logs_each_kind_once_and_sums_the_rest_once_per_period():

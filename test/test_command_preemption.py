@@ -144,8 +144,9 @@ def test_a_tripped_watchdog_preempts_a_slow_bus(tmp_path):
         latencies = sorted(stamp - last_command for stamp in stopped_at.values())
         assert latencies[0] > 0.5, latencies             # not before the timeout ...
         # ... and not a bus cycle after it: every drive tripped at once, so one broadcast
-        # frame stops them all (a read of 5 registers in flight + the write: ~60 ms).
-        assert latencies[-1] < 0.5 + 0.1, latencies
+        # frame stops them all (a read of 5 registers in flight + the write: ~60 ms; the
+        # rest is slack for a loaded machine, still short of a cycle of four at 9600).
+        assert latencies[-1] < 0.5 + 0.2, latencies
         def broadcasts() -> list[bytes]:
             return [frame for stamp, frame in list(line.received)
                     if stamp > last_command and frame[0] == 0]

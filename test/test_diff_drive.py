@@ -379,7 +379,7 @@ def test_cmd_vel_to_wheel_commands_and_timeout_to_zero(make_rig):
     stopped = time.monotonic()
     rig.wait_commands(0.0, 0.0, 2.0, 'zeros after the timeout')
     elapsed = time.monotonic() - stopped
-    assert 0.35 < elapsed < 1.0, elapsed
+    assert 0.35 < elapsed < 1.5, elapsed
     count = len(rig.left.commands)
     wait_for(lambda: len(rig.left.commands) > count + 10, 2.0, 'zeros keep flowing')
     assert set(rig.left.commands[count:]) == {0.0}
@@ -447,7 +447,8 @@ def test_odometry_integrates_measured_speeds_in_rep105_frames(make_rig):
     driven = time.monotonic() - start
     wait_for(lambda: rig.odom[-1].twist.twist.linear.x == 0.0, 2.0, 'stopped')
     final = rig.odom[-1]
-    assert final.pose.pose.position.x == pytest.approx(0.3 * driven, abs=0.03)
+    # (driven is this thread's time: the feeder's start and stop may lag it differently)
+    assert final.pose.pose.position.x == pytest.approx(0.3 * driven, abs=0.045)
     assert final.pose.pose.position.y == pytest.approx(0.0, abs=1e-9)
     assert final.pose.pose.orientation.w == pytest.approx(1.0)
     # Message to message, the pose advances by v * (stamp difference); a cycle the

@@ -459,6 +459,7 @@ def test_status_comes_at_its_rate_with_its_own_stamp_between_slow_cycles(make_ha
     polls = {s.transactions for s in statuses}
     assert len(statuses) >= 4 * len(polls)        # several messages between two polls
     assert max(s.transactions for s in statuses) > statuses[0].transactions
+    wait_for(lambda: len(joints) >= 2, 3.0, 'two joint_states')   # its own subscription
     joint_stamps = [j.header.stamp.sec + 1e-9 * j.header.stamp.nanosec for j in joints]
     assert len(joint_stamps) >= 2 and all(b > a for a, b in zip(joint_stamps,
                                                                  joint_stamps[1:]))

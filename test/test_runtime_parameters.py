@@ -134,8 +134,9 @@ def test_drive_node_command_timeout_and_rates_are_applied(make_harness):
     assert h.node.controller.drive.display_period == 0.0
     assert set_parameter(h.tester, node, 'diagnostics_rate', 1.0).successful
     assert set_parameter(h.tester, node, 'status_rate', 0.2).successful
-    h.wait_cycles(2)
-    assert h.node.controller.drive.display_period == pytest.approx(0.75)
+    # (set by the loop at a cycle's start: wait_cycles counts the simulator's requests)
+    wait_for(lambda: h.node.controller.drive.display_period == pytest.approx(0.75), 3.0,
+             'display period 0.75 s')
     assert set_parameter(h.tester, node, 'diagnostics_rate', 0.5).successful
     assert h.node.controller.config.shown_period == pytest.approx(2.0)
     assert not set_parameter(h.tester, node, 'status_rate', 0.0).successful
