@@ -20,7 +20,7 @@ import yaml
 from harness import wait_for
 from vfd_ros2.drives import drive_class_for
 from vfd_ros2.drives.canopen import CanopenDrive
-from vfd_ros2.errors import CommTimeout, ProtocolException
+from vfd_ros2.errors import CommTimeout, ProtocolException, TransportError
 from vfd_ros2.profiles import ValueType, load_profile
 from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.sim.canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
@@ -315,4 +315,35 @@ def test_two_transports_of_one_process_send_one_sync_per_burst(channel):
     finally:
         for drive in drives:
             drive.close()
+        sim_bus.stop()
+
+
+def test_a_node_that_ignores_nmt_start_is_not_taken_as_started(channel):
+    """Its heartbeat keeps saying pre-operational: the connect fails and says so.
+
+    It was taken online (no PDOs exchanged), dropped two heartbeats later and
+    connected again at once: online and offline by turns, a reconnect every 0.3 s.
+    """
+    twin = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)
+    twin.ignores_nmt_start = True
+    sim_bus = SimulatedCanBus([twin], channel).start()
+    transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2)
+    drive = CanopenDrive(load_profile('cia402_velocity'), transport, 1,
+                         VelocityScaling(1.0, False, 3000.0, 2))
+    try:
+        drive.open()
+        plan = drive.host_loss_plan(0.3, 0.02)
+        started = time.monotonic()
+        with pytest.raises(TransportError, match='node 1 stays PRE-OPERATIONAL after NMT '
+                                                 'start'):
+            drive.configure(plan, apply_commissioning=True)
+        assert time.monotonic() - started < 2.0
+        assert twin.node.nmt.state == 'PRE-OPERATIONAL'
+        twin.ignores_nmt_start = False              # it obeys again: the connect succeeds
+        drive.forget_state()
+        drive.configure(plan, apply_commissioning=True)
+        assert twin.node.nmt.state == 'OPERATIONAL'
+        assert transport.check_alive(1) in (None, 'OPERATIONAL')
+    finally:
+        drive.close()
         sim_bus.stop()

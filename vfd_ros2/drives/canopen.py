@@ -76,6 +76,8 @@ TPDO_SLACK = 0.25
 HEARTBEAT_TIMEOUT_PERIODS_MIN = 1.5
 #: s between two SYNCs at most that another SYNC producer is trusted with (sync_producer false)
 FOREIGN_SYNC_PERIOD = 0.5
+#: s a connect waits at most for the heartbeat that says NMT start was obeyed
+OPERATIONAL_WAIT_LONGEST = 1.0
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
@@ -314,6 +316,14 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             problems.append('heartbeat is off (heartbeat_ms 0): link loss is not detected')
             timeout = 0.0
         t.supervise(unit, timeout)
+        if heartbeat > 0:
+            # Started only once its heartbeat says so: a node ignoring NMT start stayed
+            # pre-operational (no PDOs) and was taken online, then dropped, in a loop.
+            refused = t.await_operational(unit, min(2.5 * heartbeat / 1000.0,
+                                                    OPERATIONAL_WAIT_LONGEST))
+            if refused is not None:
+                raise TransportError(f'node {unit} stays {refused} after NMT start '
+                                     '(its heartbeat): no PDOs are exchanged')
         self._tpdo_periods = self._tpdo_rates()
         self._tpdo_polls.clear()
         self._configured_at = time.monotonic()

@@ -116,6 +116,7 @@ class SimulatedCanopenDrive:
         self.tpdos_off = False      # heartbeat and SDO go on, no TPDO (a dead PDO producer)
         self.tpdo_bytes: int | None = None  # TPDOs cut to this length (a mapping gone wrong)
         self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
+        self.ignores_nmt_start = False      # NMT start (0x01) not obeyed: stays pre-operational
         self.emcy_sent: list[tuple[int, int, bytes]] = []
         self.rpdos_received = 0
         self._last_rpdo: float | None = None
@@ -518,12 +519,17 @@ class SimulatedCanopenDrive:
         network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
         network.unsubscribe(0, self.node.nmt.on_command)
         network.subscribe(self.node.sdo.rx_cobid, self._gate(self.node.sdo.on_request))
-        network.subscribe(0, self._gate(self.node.nmt.on_command))
+        network.subscribe(0, self._gate(self._on_nmt))
         for number in range(self.spec.rpdos):
             network.subscribe(0x200 + 0x100 * number + self.node_id, self._on_rpdo)
         network.subscribe(SYNC_COB_ID, self._on_sync)
         self.node.nmt.state = 'PRE-OPERATIONAL'
         network.send_message(0x700 + self.node_id, bytes((0,)))      # boot-up
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.ignores_nmt_start and data[:1] == b'\x01':
+            return              # a node that stays pre-operational whatever it is told
+        self.node.nmt.on_command(can_id, data, timestamp)
 
     def _gate(self, callback: Callable[..., None]) -> Callable[..., None]:
         def gated(can_id: int, data: bytearray, timestamp: float) -> None:

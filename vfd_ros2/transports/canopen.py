@@ -78,6 +78,8 @@ SDO_EXPEDITED_DOWNLOAD = 0x23
 SDO_DOWNLOAD_CONFIRMED = 0x60
 #: NMT state byte of Operational in a heartbeat (CiA 301); the host reports it too
 NMT_OPERATIONAL = 0x05
+#: s between two looks at a node's heartbeat while a connect waits for it
+HEARTBEAT_POLL = 0.005
 #: host heartbeat period bounds when derived from the control rate (s)
 HOST_HEARTBEAT_MIN = 0.01
 HOST_HEARTBEAT_MAX = 0.1
@@ -1014,6 +1016,29 @@ class CanopenTransport(Transport):
             link.supervise_from = time.monotonic()
             link.booted = False
             link.not_operational = 0
+
+    def await_operational(self, unit: int, wait: float) -> str | None:
+        """Wait up to ``wait`` s for node ``unit``'s heartbeats since ``supervise`` to agree.
+
+        Return None once one reports Operational (or none came in time: the
+        supervision judges), else the state two in a row report instead (the first
+        may have been in flight when NMT start was sent): a node that ignores NMT
+        start, which must not be taken for a started one.
+        """
+        link = self._link(unit)
+        deadline = time.monotonic() + wait
+        while True:
+            with self._lock:
+                heard = link.last_heartbeat is not None and \
+                    link.last_heartbeat >= link.supervise_from
+                state, refused = link.nmt_state, link.not_operational >= 2
+            if heard and state == NMT_OPERATIONAL:
+                return None
+            if refused and state is not None:
+                return NMT_STATES.get(state, f'0x{state:02X}')
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(HEARTBEAT_POLL)
 
     def check_alive(self, unit: int) -> str | None:
         """Raise when node ``unit``'s heartbeat is lost or it rebooted; return its NMT state.
