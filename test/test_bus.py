@@ -16,7 +16,7 @@ from std_msgs.msg import Float64
 
 from harness import wait_for
 from vfd_ros2.control.bus import Bus, parse_bus_config
-from vfd_ros2.errors import ParameterError
+from vfd_ros2.errors import CommTimeout, ParameterError
 from vfd_ros2.msg import DriveStatus
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.ros.bus_node import BusNode
@@ -735,3 +735,26 @@ def test_a_slow_loop_on_its_rate_is_not_short_however_often_it_is_sampled():
         cycles += 1 if round(clock.now * 2) % 8 == 0 else 0
         verdicts.append(watch.sample(cycles, 2.0)[1])
     assert verdicts[-1]
+
+
+def test_drives_whose_connects_keep_failing_are_tried_after_the_others():
+    """A healthy drive that rebooted does not wait behind every failing drive's attempt."""
+    bus, _, simulated, _ = canopen_bus((1, 2, 3, 4))
+    try:
+        controllers = [bus.controllers[f'n{n}'] for n in (1, 2, 3, 4)]
+        for controller in controllers[:3]:
+            controller.link.failed_connects = 5          # silent or refusing nodes
+        orders = []
+        for turn in range(3):
+            bus._connect_turn = turn                      # noqa: SLF001
+            orders.append([c.drive.unit_id for c in bus._connect_order(controllers)])
+        assert [order[0] for order in orders] == [4, 4, 4]
+        assert [order[1:] for order in orders] == [[1, 2, 3], [2, 3, 1], [3, 1, 2]]
+        controllers[3].link.connect_failed(CommTimeout('no reply'))    # it fails too:
+        assert not controllers[3].connect_due                           # (retry later)
+        controllers[0].link.connected()                   # and back in line with the rest
+        controllers[0].link.drop('lost')
+        assert bus._connect_order(controllers)[0] is controllers[0]    # noqa: SLF001
+    finally:
+        bus.shutdown()
+        simulated.stop()

@@ -22,6 +22,10 @@ from vfd_ros2.transports.modbus import ModbusRtuTransport
 TIMEOUT = 0.03
 #: replies this much after the master's timeout (the guard, = timeout, covers them)
 LATE = (TIMEOUT + 0.003, TIMEOUT + 0.028)
+#: the guard where a late reply must never become a value: the simulated line's thread may
+#: send one later than planned on a loaded machine, and one later than timeout + guard is
+#: undetectable by the protocol (rtu_link's docstring); a late reply ends the guard early
+GUARD = 0.08
 
 
 def distinct_drive(unit: int) -> tuple[SimulatedDrive, list[tuple[int, list[int]]]]:
@@ -69,7 +73,8 @@ def test_late_replies_never_become_phantom_values(tmp_path, deaf):
     faults = LineFaults(late_rate=0.1, late_delay=LATE, late_deaf=deaf)
     line = SimulatedRtuLine([drive], tmp_path / 'line', baudrate=115200, faults=faults,
                             seed=7, tick_period=0.001).start()
-    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT,
+                                   late_reply_guard=GUARD)
     try:
         plan = [(1, address, values) for address, values in blocks]
         good, phantoms, failures = run_reads(transport, plan, 1000, random.Random(3))
@@ -92,7 +97,8 @@ def test_late_replies_on_a_bus_of_two(tmp_path):
     faults = LineFaults(late_rate=0.1, late_delay=LATE)
     line = SimulatedRtuLine([drive1, drive2], tmp_path / 'line', baudrate=115200,
                             faults=faults, seed=11, tick_period=0.001).start()
-    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT)
+    transport = ModbusRtuTransport(str(tmp_path / 'line'), 115200, timeout=TIMEOUT,
+                                   late_reply_guard=GUARD)
     try:
         plan = [(1, a, v) for a, v in blocks1] + [(2, a, v) for a, v in blocks2]
         good, phantoms, failures = run_reads(transport, plan, 1000, random.Random(5))

@@ -336,10 +336,10 @@ class Bus:
         """
         if self._beside is not None:
             return
-        due = [c for c in controllers if c.connect_due]
+        due = self._connect_order(controllers)
         if not due:
             return
-        controller = due[self._connect_turn % len(due)]
+        controller = due[0]
         self._connect_turn += 1
         thread = threading.Thread(target=self._connect_alone, args=(controller,),
                                   name=f'vfd connect {controller.drive.hardware_id}',
@@ -354,6 +354,20 @@ class Bus:
         except Exception as exc:  # noqa: BLE001 - the thread must end with the drive offline
             log.exception('%s: connect failed: %s', controller.drive.hardware_id, exc)
 
+    def _connect_order(self, controllers: Sequence[DriveController]) -> list[DriveController]:
+        """Return the drives due to connect in the order to try them.
+
+        Each in turn, but those whose last connect failed after the others: a healthy
+        drive that rebooted must not wait behind every silent or refusing drive's
+        attempt (each up to its timeouts) on a bus of many; it fails at most once to
+        join the rest.
+        """
+        due = [c for c in controllers if c.connect_due]
+        if not due:
+            return []
+        first = self._connect_turn % len(due)
+        return sorted(due[first:] + due[:first], key=lambda c: c.link.failed_connects > 0)
+
     def _connect_candidates(self, controllers: Sequence[DriveController]
                             ) -> tuple[dict[DriveController, float], float]:
         """Offline drives due to connect this cycle, with their planned cost, and the budget.
@@ -365,16 +379,15 @@ class Bus:
         (each counted at its worst, a silent drive's timeout), at least one; ``step``
         checks each after the first against the time the others really took.
         """
-        due = [c for c in controllers if c.connect_due]
+        due = self._connect_order(controllers)
         if not due:
             return {}, 0.0
-        first = self._connect_turn % len(due)
         budget = (self.addressing_interval
                   - max(c.drive.action_seconds() for c in controllers)
                   - sum(c.drive.cycle_seconds() for c in controllers if c.link.online))
         chosen: dict[DriveController, float] = {}
         planned = 0.0
-        for controller in due[first:] + due[:first]:
+        for controller in due:
             cost = max(controller.drive.connect_seconds(),
                        controller.drive.transport.failed_exchange_seconds())
             if chosen and planned + cost > budget:

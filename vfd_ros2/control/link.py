@@ -33,6 +33,7 @@ class LinkSupervisor:
         self._clock = clock
         self.online = False
         self.reconnects = 0
+        self.failed_connects = 0     # in a row, since it was last online
         self.error = ''              # why the link failed last ('' while healthy)
         self.closed_reason = ''      # why the host closed it on purpose ('' = it did not)
         self._ever_online = False
@@ -61,6 +62,7 @@ class LinkSupervisor:
             self.reconnects += 1
         self._ever_online = True
         self.online = True
+        self.failed_connects = 0
         self._failed_cycles = 0
         self.error = self._connect_error = self.closed_reason = ''
         if not self._quiet:
@@ -69,6 +71,7 @@ class LinkSupervisor:
     def connect_failed(self, exc: VfdError) -> None:
         self.error = str(exc)
         self.closed_reason = ''
+        self.failed_connects += 1
         self._next_attempt = self._clock() + self.retry_period
         # Why a drive stays offline (a value it refuses at connect, a silent node)
         # goes to the log once per reason, not once per attempt.
