@@ -107,3 +107,18 @@ def test_stop_goals_never_enable_operation():
             command = next_command(state, goal)
             if command is not None:
                 assert transition(state, command) is not State.OPERATION_ENABLED
+
+
+def test_a_stuck_transition_is_reported_and_cleared_once_the_drive_gets_there():
+    """An EtherCAT slave back in OP reached Operation Enabled: 'blocked' stayed shown."""
+    from vfd_ros2.drives.cia402 import Cia402Control
+    now = [0.0]
+    control = Cia402Control('d', transition_timeout=1.0, clock=lambda: now[0])
+    control.update(0x0040)                              # switch on disabled
+    control.controlword(True, 'stop')
+    now[0] = 1.5
+    control.controlword(True, 'stop')
+    assert 'stays in SWITCH_ON_DISABLED, not OPERATION_ENABLED' in control.stuck
+    control.update(0x0027)                              # operation enabled after all
+    control.controlword(True, 'stop')
+    assert control.stuck == ''

@@ -233,6 +233,27 @@ def test_lost_slave_is_detected_and_brought_back(start_segment, open_segment):
     assert sim.esc(1)['al_status'] == int(ALState.OP)
 
 
+def test_a_slave_that_leaves_op_by_itself_is_noticed_and_brought_back(start_segment,
+                                                                     open_segment):
+    """A slave falls to SAFE-OP with an AL error on its own account (an application error).
+
+    The simulated slave goes on answering the cycle frame, so no working-counter
+    error says so: the AL states are read on a timer (``state_poll_s``) as well.
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    link = open_segment(supervise_s=0.02, state_poll_s=0.1)
+    link.configure_pdos(1, BONENG_VL)
+    link.start()
+    wait_for(lambda: sim.esc(1)['al_status'] == int(ALState.OP), 2.0, 'slave 2 in OP')
+    sim.fail(1, ALState.SAFE_OP, 0x001B)          # sync manager watchdog, say
+    assert sim.esc(1)['al_status'] & 0x1F == int(ALState.SAFE_OP) | 0x10
+    # acknowledged and asked for OP again by the master, unprompted by any frame loss
+    wait_for(lambda: sim.esc(1)['al_status'] == int(ALState.OP), 2.0,
+             'slave 2 brought back to OP')
+    wait_for(lambda: link.slave(1).state is ALState.OP, 1.0, 'OP read back by the master')
+    assert link.slave(0).state is ALState.OP
+
+
 def test_a_second_master_on_the_nic_is_refused_until_the_first_closes(start_segment,
                                                                         open_segment):
     """Two masters on one segment would each reset and drive every slave: one is refused.

@@ -92,6 +92,7 @@ class Cia402Control:
         done = _DONE[goal]
         if done is not None and self.state is done:
             self._goal_since = now
+            self.stuck = ''                  # got there after all (a slave back in OP)
         elif done is not None and now - self._goal_since > self.transition_timeout \
                 and not self.stuck:
             where = self.state.name if self.state is not None else 'unknown'

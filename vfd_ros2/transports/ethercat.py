@@ -167,6 +167,9 @@ class SegmentSettings:
     sdo_timeout_s: float = 0.7             # each SDO exchange
     mailbox_poll_s: float = 0.05           # emergency polling period; 0 = only during SDOs
     supervise_s: float = 0.05              # state check period while something is wrong
+    # AL states read this often while all looks well: a slave that drops to SAFE-OP by
+    # itself (an application error) may keep answering the cycle frame's working counter
+    state_poll_s: float = 0.1
     lost_after_s: float = 0.25             # a slave silent this long is lost (not one frame)
     recover: bool = True                   # bring back slaves that vanished
     realtime_priority: int | None = None   # SCHED_FIFO priority of the process-data thread
@@ -678,13 +681,15 @@ class EthercatSegment:
 
     def _supervise(self) -> None:
         settings = self.settings
-        next_poll = time.monotonic()
+        next_poll = next_state_check = time.monotonic()
         while not self._stop.is_set():
             troubled = self._trouble.wait(settings.supervise_s)
             if self._stop.is_set():
                 return
-            if troubled or any(slave.lost for slave in self._slaves):
+            if troubled or any(slave.lost for slave in self._slaves) or \
+                    time.monotonic() >= next_state_check:
                 self._trouble.clear()
+                next_state_check = time.monotonic() + settings.state_poll_s
                 try:
                     self._check_states()
                 except TransportError as exc:
@@ -1276,6 +1281,10 @@ class EthercatTransport(Transport):
             self.count_unit(unit, 'timeouts')
             raise CommTimeout(f'EtherCAT slave {unit} lost (no answer on '
                               f'{self.settings.interface})')
+        if slave.state is ALState.NONE:        # not answering, not yet long enough for lost
+            self.count_unit(unit, 'timeouts')
+            raise CommTimeout(f'EtherCAT slave {unit} does not answer on '
+                              f'{self.settings.interface}')
         if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
             self.count_unit(unit, 'exceptions')
             raise EthercatError(f'EtherCAT slave {unit} left OP: it is '

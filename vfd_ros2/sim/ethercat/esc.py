@@ -801,6 +801,10 @@ class Esc:
         if previous != self.al_status:
             self._raise_event(EVENT_AL_STATUS)
 
+    def application_error(self, state: ALState, code: int) -> None:
+        """Fall back to ``state`` with the error flag and ``code`` on the slave's own account."""
+        self._fail(state, code)
+
     def _fail(self, state: ALState, code: int) -> None:
         """Stay in (or fall back to) ``state`` with the error flag and ``code``."""
         previous = self.al_state

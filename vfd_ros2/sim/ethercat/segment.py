@@ -32,7 +32,7 @@ import types
 from collections import deque
 from typing import Any, Sequence
 
-from ...protocol.ethercat import ETHERTYPE_ETHERCAT
+from ...protocol.ethercat import ETHERTYPE_ETHERCAT, ALState
 from ...transports.netns import VethLink, open_packet_socket, set_link_state
 from .drive import Cia402VelocityDrive, DriveSpec, sii_image
 from .esc import HOP_DELAY_NS, Esc
@@ -203,6 +203,10 @@ class SegmentServer:
         if name in ('unplug', 'replug', 'power_cycle'):
             getattr(segment, name)(*args)
             return None
+        if name == 'fail':
+            position, state, code = args
+            segment.escs[position].application_error(ALState(state), code)
+            return None
         if name == 'lose_frames':
             self.lose_until = time.monotonic() + float(args[0])
             return None
@@ -329,6 +333,14 @@ class SimulatedSegment:
     def link_up(self) -> None:
         set_link_state(self.link, True)
         self._request('link', True)
+
+    def fail(self, position: int, state: ALState, code: int) -> None:
+        """Make slave ``position`` fall back to ``state`` with the AL error flag and ``code``.
+
+        By itself, as on an application error: the master is not told, and the slave
+        goes on answering the cycle frame in its new state.
+        """
+        self._request('fail', position, int(state), code)
 
     def call(self, position: int, method: str, *args: Any) -> Any:
         """Call a control method of slave ``position``'s application (its ``CONTROLS``)."""
