@@ -6,6 +6,7 @@ import math
 import os
 import time
 
+import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 
 from unit_support import MemoryTransport, shipped_profile
@@ -285,3 +286,24 @@ def test_a_refused_realtime_priority_is_a_diagnostics_warning(monkeypatch):
     status = diagnostic_status(state, 'drive', ever_online=True)
     assert status.level == DiagnosticStatus.WARN
     assert 'realtime_priority 20 refused' in status.message
+
+
+@pytest.mark.parametrize('enabled_again', [False, True])
+def test_a_drive_running_when_the_host_wants_it_running_again_is_no_unexpected_start(
+        enabled_again):
+    """Enable, disable, enable in quick succession (a service storm).
+
+    The idle command was written, the drive shows the host's own earlier run, and
+    the host wants it running again by the time it is read. That was counted and
+    logged as a start from elsewhere ("... although the host has it running").
+    """
+    transport = CommandDuringPoll()
+    controller = controller_on(transport)
+    controller.intent.enabled = False
+    controller.step()                                # connect; idle written
+    controller.command_velocity(1.0)                 # fresh commands
+    controller.step()                                # idle written all the same (disabled)
+    transport.registers[0xE102] = 1                  # P01.02 run: the drive reports running
+    controller.intent.enabled = enabled_again        # ~/enable (nothing written yet)
+    controller.poll_phase()                          # read before the next command write
+    assert controller.state.unexpected_starts == (0 if enabled_again else 1)

@@ -829,14 +829,15 @@ class DriveController:
             self.services.reassert_idle = True
             # A run asked for a cycle ago may show only now (withdrawn at once by a short
             # command_timeout, say): that start was the host's own.
+            # Nor is one the host wants by now (enabled again since the idle write).
             now = self._clock()
-            if not self._last_running and \
+            wanted = decide(self.intent, self._conditions())[0]
+            if not self._last_running and wanted is not RunState.RUNNING and \
                     now - self._run_asked_at > 2 * self.addressing_interval():
                 self._unexpected_starts += 1
                 self._running_idle_counted = True
                 log.warning('%s reports running although the host has it %s: idle command '
-                            'written again', self.drive.hardware_id,
-                            decide(self.intent, self._conditions())[0].label)
+                            'written again', self.drive.hardware_id, wanted.label)
             self._check_not_stopping(now)
         else:
             self._running_idle_since, self._running_idle_counted = None, False
