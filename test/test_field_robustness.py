@@ -200,6 +200,7 @@ def test_a_bus_that_cannot_be_protected_refuses_to_start():
     ('C02.04', 0.0, 'drive_comm_timeout'),       # the comm-loss timeout the driver manages
     ('P07.34', 50.0, 'second setpoint channel'),  # from the profile's control_owned
     ('B01.03', 0.0, 'apply_commissioning'),      # a commissioning value, rewritten at connect
+    ('B02.02', 1.0, 'a way to move the motor'),  # the profile's motion_channels: adds B03.16
 ])
 def test_control_owned_registers_are_refused(make_harness, code, value, hint):
     h = make_harness()
@@ -213,6 +214,29 @@ def test_control_owned_registers_are_refused(make_harness, code, value, hint):
         == {a: v for a, v in before.items() if a == h.profile.parameter(code).address}
     got = h.call(GetDriveParameter, 'get_drive_parameter', GetDriveParameter.Request(name=code))
     assert got.success and not got.writable
+
+
+@pytest.mark.parametrize('profile_name, transport', [
+    ('boneng_am', 'modbus_rtu'), ('boneng_mh', 'modbus_rtu'), ('veichi_ehs100', 'modbus_rtu'),
+    ('kinco_ec', 'canopen'), ('imo_hd2', 'modbus_tcp')])
+def test_motion_channels_are_refused_by_the_node_and_left_to_commissioning(profile_name,
+                                                                           transport):
+    """A second setpoint source, a jog input, an automatic restart: not through a node."""
+    from vfd_ros2.control.factory import build_controller
+    settings = {'drive.profile': profile_name, 'transport.type': transport}
+    if transport == 'modbus_rtu':
+        settings['transport.port'] = '/dev/null'
+    controller = build_controller(settings)
+    channels = controller.drive.profile.motion_channels
+    assert len(channels) >= 2
+    for code, why in channels.items():
+        parameter = controller.drive.profile.parameter(code)
+        value = parameter.default if parameter.default is not None else 0.0
+        with pytest.raises(ParameterError, match='a way to move the motor') as refused:
+            controller.check_parameter_write(code, value)
+        assert why in str(refused.value)
+        assert not controller.parameter_writable(code)
+        controller.drive.check_write(code, value, running=False)     # vfd_params may
 
 
 def test_no_run_before_the_first_status_read_after_connect(tmp_path):

@@ -112,8 +112,8 @@ def other_value(parameter, current: float) -> float:
 def settings_to_change(profile) -> dict[str, str]:
     """Pick, per family: a commissioning selector, a stopped-only and a run-time parameter."""
     identify = profile.identify
-    special = set(identify.link_parameters) | set(profile.control_owned) | {
-        profile.modbus.persistence.parameter}
+    special = set(identify.link_parameters) | set(profile.control_owned) | \
+        set(profile.motion_channels) | {profile.modbus.persistence.parameter}
     commissioning = {item.code for item in profile.commissioning}
     chosen = {}
     persistence = profile.modbus.persistence

@@ -106,10 +106,14 @@ def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
     Its link (address, baud rate, framing: written, the drive stops answering on
     this link) and its velocity scaling (the rated speed where a speed is in
     percent, the pole pairs where it is in Hz: written, the wheel no longer runs
-    at the commanded speed, and max_velocity no longer bounds it). A commissioning
-    tool may write them (vfd_params); the node's parameter services refuse them.
+    at the commanded speed, and max_velocity no longer bounds it), and that there
+    is no other way to move the motor than its commands (the profile's
+    ``motion_channels``). A commissioning tool may write them (vfd_params); the
+    node's parameter services refuse them.
     """
-    found = {}
+    found = {code: (f"{why}: a way to move the motor besides this node's commands; set "
+                    'it with vfd_params or at the keypad, if at all')
+             for code, why in drive.profile.motion_channels.items()}
     for code in getattr(drive, 'link_parameters', ()):    # (a plugin may not say)
         found[code] = ('it sets how this link reaches the drive (written, the drive stops '
                        "answering here): change it with vfd_params or at the keypad, with "

@@ -493,12 +493,14 @@ def _build(path: Path, files_read: list[FileStamp]) -> Profile:
     )
     _check_references(profile)
     extra_owned = {str(k): str(v) for k, v in (data.get('control_owned') or {}).items()}
-    for code in extra_owned:
-        if code not in parameters:
-            raise ProfileError(f'{path.name}: control_owned names {code!r}, not in the '
-                               'parameter table')
+    channels = {str(k): str(v) for k, v in (data.get('motion_channels') or {}).items()}
+    for key, codes in (('control_owned', extra_owned), ('motion_channels', channels)):
+        for code in codes:
+            if code not in parameters:
+                raise ProfileError(f'{path.name}: {key} names {code!r}, not in the '
+                                   'parameter table')
     profile = dataclasses.replace(profile, control_owned={
-        **_control_owned(profile), **extra_owned})
+        **_control_owned(profile), **extra_owned}, motion_channels=channels)
     _check_defaults(profile)
     return profile
 

@@ -663,6 +663,10 @@ class Profile:
     # timeout it manages, CiA 402 objects): code -> what to use instead. The
     # parameter services refuse them, so nothing moves the motor around the loop.
     control_owned: Mapping[str, str] = field(default_factory=dict)
+    # Settings that open another way to move the motor (a second setpoint source, a jog
+    # or direction input, an automatic fault reset or restart): code -> why. A running
+    # node's parameter services refuse them; a commissioning tool (vfd_params) may set them.
+    motion_channels: Mapping[str, str] = field(default_factory=dict)
     # How vfd_scan / vfd_params find and recognise the family (None: not described).
     identify: IdentifySpec | None = None
     # The joint position (JointState.position, odometry) and effort (None: not measured).
