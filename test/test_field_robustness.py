@@ -223,7 +223,9 @@ def test_motion_channels_are_refused_by_the_node_and_left_to_commissioning(profi
                                                                            transport):
     """A second setpoint source, a jog input, an automatic restart: not through a node."""
     from vfd_ros2.control.factory import build_controller
-    settings = {'drive.profile': profile_name, 'transport.type': transport}
+    # (with apply_commissioning, a channel the commissioning closes is refused as such)
+    settings = {'drive.profile': profile_name, 'transport.type': transport,
+                'apply_commissioning': False}
     if transport == 'modbus_rtu':
         settings['transport.port'] = '/dev/null'
     controller = build_controller(settings)
