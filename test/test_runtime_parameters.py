@@ -297,3 +297,13 @@ def test_a_faster_rate_takes_effect_at_once_not_after_the_old_period():
         wait_for(lambda: len(steps) >= 5, 5.0, 'cycles at the new period (not 30 s later)')
     finally:
         loop.stop()
+
+
+def test_a_refused_value_is_shown_as_given():
+    """0.499999999 refused as 'must be >= 0.5, got 0.5' did not say what was wrong."""
+    from vfd_ros2.ros.parameters import check_value
+    with pytest.raises(ValueError, match=r'control_rate must be >= 0.5, got 0.499999999$'):
+        check_value('control_rate', 0.499999999, 0.5, 1000.0)
+    with pytest.raises(ValueError, match=r'status_rate must be <= 1000, got 1000.000001$'):
+        check_value('status_rate', 1000.000001, 0.1, 1000.0)
+    check_value('status_rate', 1000.0, 0.1, 1000.0)

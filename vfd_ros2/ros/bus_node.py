@@ -257,7 +257,9 @@ class BusNode(Node):
                     closed))
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
-            self.get_logger().error(f'bus diagnostics failed: {exc}', throttle_duration_sec=5.0)
+            if self.context.ok():       # (a timer that fired as Ctrl-C shut the context)
+                self.get_logger().error(f'bus diagnostics failed: {exc}',
+                                        throttle_duration_sec=5.0)
 
     def destroy_node(self) -> None:
         self.bus.shutdown()      # every drive is commanded to stop before the port closes

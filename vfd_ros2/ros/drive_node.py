@@ -291,8 +291,9 @@ class DriveNode(Node):
                 self._last_fault = fault
                 self._fault_published = True
         except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f'status publishing failed: {exc}',
-                                    throttle_duration_sec=5.0)
+            if self.context.ok():       # (a timer that fired as Ctrl-C shut the context)
+                self.get_logger().error(f'status publishing failed: {exc}',
+                                        throttle_duration_sec=5.0)
 
     def _measured_at(self, state: DriveState, now: Time) -> TimeMsg:
         """Return when ``state`` was measured, on the node's clock (JointState's stamp).
@@ -323,7 +324,8 @@ class DriveNode(Node):
             array.status = [status]
             self.diagnostics_pub.publish(array)
         except Exception as exc:  # noqa: BLE001
-            self.get_logger().error(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)
+            if self.context.ok():
+                self.get_logger().error(f'diagnostics failed: {exc}', throttle_duration_sec=5.0)
 
     # --- services ---------------------------------------------------------------
 

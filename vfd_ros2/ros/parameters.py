@@ -54,10 +54,11 @@ def check_value(name: str, value: Any, minimum: float | None = None,
         return
     if not math.isfinite(value):
         raise ValueError(f'{name} must be a finite number, got {value}')
+    # (the value as given: 0.499999999 shown as 0.5 would not say what is wrong with it)
     if minimum is not None and value < minimum:
-        raise ValueError(f'{name} must be >= {minimum:g}, got {value:g}')
+        raise ValueError(f'{name} must be >= {minimum:g}, got {value!r}')
     if maximum is not None and value > maximum:
-        raise ValueError(f'{name} must be <= {maximum:g}, got {value:g}')
+        raise ValueError(f'{name} must be <= {maximum:g}, got {value!r}')
 
 
 def unknown_overrides(node: Node) -> list[str]:
