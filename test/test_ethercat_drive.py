@@ -537,3 +537,27 @@ def test_parameters_refused_as_commissioned_are_the_ones_this_transport_writes()
     # the reaction to a comm timeout: 1 would keep the drive running when the host dies
     with pytest.raises(ParameterError, match='P14.05 .* set to 0 at every connect'):
         tcp.check_parameter_write('P14.05', 1)
+
+
+def test_missed_cycles_warn_while_they_go_missing_not_for_good(monkeypatch):
+    """One missed process-data cycle kept every drive's diagnostics at WARN for the run."""
+    import types
+
+    from vfd_ros2.transports import ethercat
+    now, missed = [100.0], [0]
+    monkeypatch.setattr(ethercat.time, 'monotonic', lambda: now[0])
+    transport = ethercat.EthercatTransport(ethercat.SegmentSettings('eth9'))
+    transport._segment = types.SimpleNamespace(     # noqa: SLF001 - the counters only
+        stats=lambda: types.SimpleNamespace(missed_cycles=missed[0], cycles=5000))
+    assert transport.link_notes == ()
+    missed[0] = 3
+    assert transport.link_notes == ('3 missed process-data cycles of 5000 (2 ms), the last '
+                                    '0 s ago',)
+    now[0] += ethercat.MISSED_CYCLES_RECENT - 1
+    assert transport.link_notes and 'the last 9 s ago' in transport.link_notes[0]
+    now[0] += 2
+    assert transport.link_notes == ()                # none for 11 s: no warning
+    missed[0] = 4
+    assert transport.link_notes[0].startswith('4 missed')
+    error = ethercat.AlStateError(2, ALState.OP, 0x00, 0x0000)
+    assert str(error) == 'slave 3 did not reach OP: it does not answer'

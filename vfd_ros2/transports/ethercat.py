@@ -70,6 +70,8 @@ ERROR_SETTLE_S = 0.02
 #: SDO uploads are tried this often when a frame is lost (WKC error): reading twice
 #: changes nothing. Downloads are not repeated; the caller decides.
 READ_ATTEMPTS = 2
+#: s after the last missed process-data cycle that a drive's diagnostics still warn of it
+MISSED_CYCLES_RECENT = 10.0
 
 #: where a master process marks the NIC it drives (an flock, which the kernel drops
 #: when the process dies, however it dies)
@@ -242,9 +244,9 @@ class AlStateError(EthercatError):
         self.status = status
         self.code = code
         self.text = al_status_text(code)
-        super().__init__(
-            f'slave {position + 1} did not reach {requested.name}: it is {al_state_name(status)}, '
-            f'AL status code 0x{code:04X} ({self.text})')
+        now = 'it does not answer' if status & AL_STATE_MASK == ALState.NONE else \
+            f'it is {al_state_name(status)}, AL status code 0x{code:04X} ({self.text})'
+        super().__init__(f'slave {position + 1} did not reach {requested.name}: {now}')
 
 
 class SdoAbortError(ProtocolException):
@@ -922,6 +924,7 @@ class EthercatTransport(Transport):
         self._where: dict[int, int] = {}          # unit -> 1-based position (alias lookup)
         self._segment: EthercatSegment | None = None
         self._lock = threading.RLock()
+        self._missed_seen = (0, 0.0)      # missed cycles as last seen, and when they grew
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any]) -> 'EthercatTransport':
@@ -962,10 +965,15 @@ class EthercatTransport(Transport):
         if segment is None:
             return ()
         stats = segment.stats()
+        now = time.monotonic()
+        if stats.missed_cycles != self._missed_seen[0]:
+            self._missed_seen = (stats.missed_cycles, now)
         notes = []
-        if stats.missed_cycles:
+        # A warning while cycles go missing, not for the rest of the run after one did.
+        if stats.missed_cycles and now - self._missed_seen[1] < MISSED_CYCLES_RECENT:
             notes.append(f'{stats.missed_cycles} missed process-data cycles of '
-                         f'{stats.cycles} ({self.settings.cycle_time_s * 1000:g} ms)')
+                         f'{stats.cycles} ({self.settings.cycle_time_s * 1000:g} ms), the '
+                         f'last {now - self._missed_seen[1]:.0f} s ago')
         return tuple(notes)
 
     def exchange_seconds(self, request_bytes: int, reply_bytes: int) -> float:
