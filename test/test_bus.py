@@ -755,6 +755,12 @@ def test_drives_whose_connects_keep_failing_are_tried_after_the_others():
         controllers[0].link.connected()                   # and back in line with the rest
         controllers[0].link.drop('lost')
         assert bus._connect_order(controllers)[0] is controllers[0]    # noqa: SLF001
+        # its first tries came while it was still silent: still ahead of those failing long
+        for _ in range(2):
+            controllers[0].link.connect_failed(CommTimeout('no reply'))
+        controllers[0].link._next_attempt = 0.0           # noqa: SLF001 - due again
+        order = bus._connect_order(controllers)            # noqa: SLF001
+        assert order[0] is controllers[0] and set(order[1:]) == set(controllers[1:3])
     finally:
         bus.shutdown()
         simulated.stop()

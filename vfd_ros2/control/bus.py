@@ -357,16 +357,17 @@ class Bus:
     def _connect_order(self, controllers: Sequence[DriveController]) -> list[DriveController]:
         """Return the drives due to connect in the order to try them.
 
-        Each in turn, but those whose last connect failed after the others: a healthy
-        drive that rebooted must not wait behind every silent or refusing drive's
-        attempt (each up to its timeouts) on a bus of many; it fails at most once to
-        join the rest.
+        Each in turn, but the fewer connects a drive has failed in a row, the sooner:
+        a healthy drive that rebooted (or whose first tries came while it was still
+        silent) must not wait behind every silent or refusing drive's attempt (each
+        up to its timeouts) on a bus of many. Drives that keep failing take turns,
+        as each failure puts the drive behind the others.
         """
         due = [c for c in controllers if c.connect_due]
         if not due:
             return []
         first = self._connect_turn % len(due)
-        return sorted(due[first:] + due[:first], key=lambda c: c.link.failed_connects > 0)
+        return sorted(due[first:] + due[:first], key=lambda c: c.link.failed_connects)
 
     def _connect_candidates(self, controllers: Sequence[DriveController]
                             ) -> tuple[dict[DriveController, float], float]:
