@@ -95,3 +95,17 @@ def test_timeout_attribute():
 def test_invalid_timeouts_raise(timeout):
     with pytest.raises(ValueError, match='command_timeout must be > 0'):
         CommandWatchdog(timeout, FakeClock())
+
+
+def test_the_watchdog_reason_says_commands_from_before_the_connect_are_forgotten():
+    """'none received' right after a reconnect read as if no planner were running."""
+    import math
+
+    from vfd_ros2.control.permit import Conditions, Intent, RunState, decide
+    from vfd_ros2.profiles import NO_FAULT
+    now = Conditions(online=True, link_error='', link_closed='', fault=NO_FAULT, unsafe='',
+                     watchdog_expired=True, watchdog_age=math.inf, command_timeout=0.5)
+    state, reason = decide(Intent(enabled=True), now)
+    assert state is RunState.WATCHDOG and reason.endswith('(none since the drive connected)')
+    state, reason = decide(Intent(enabled=True), now._replace(watchdog_age=0.73))
+    assert reason.endswith('(last 0.73 s ago)')

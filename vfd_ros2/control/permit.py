@@ -65,7 +65,8 @@ def decide(intent: Intent, now: Conditions) -> tuple[RunState, str]:
     if now.unsafe:
         return RunState.BLOCKED, now.unsafe
     if now.watchdog_expired:
-        age = 'none received' if math.isinf(now.watchdog_age) else \
+        # (commands from before a connect are forgotten: none may resume the drive)
+        age = 'none since the drive connected' if math.isinf(now.watchdog_age) else \
             f'last {now.watchdog_age:.2f} s ago'
         return RunState.WATCHDOG, (f'no velocity command within command_timeout '
                                    f'{now.command_timeout:g} s ({age})')
