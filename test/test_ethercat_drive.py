@@ -236,6 +236,38 @@ def test_cable_pulled_mid_motion_recovers_stopped(start_segment, make_wheel):
                       'moving on a fresh command')
 
 
+def test_a_slave_that_falls_from_op_by_itself_comes_back_on_safe_outputs(start_segment,
+                                                                        make_wheel):
+    """It fell to SAFE-OP+ERROR while running; the supervisor brings it back to OP.
+
+    It must not come back on the last run command (and the drive be walked back to
+    Operation Enabled on it): its safe outputs stand, and its drive is told of the
+    fall (offline, with the AL state and code) until it has reconnected.
+    """
+    sim = start_segment([IMO_HD2_EC_TX508])
+    wheel = make_wheel('imo_hd2', auto_enable=True)
+    wheel.wait_status(lambda s: s.online, 10.0, 'online')
+    wheel.stream(2.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'running')
+    transport = wheel.node.controller.drive.transport
+    safe = transport._setups[1].safe_outputs                    # noqa: SLF001
+    reconnects = wheel.status.reconnects
+    sim.fail(0, ALState.SAFE_OP, 0x001B)
+    fallen = []
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline and wheel.status.reconnects == reconnects:
+        if 1 in transport._fell:                                # noqa: SLF001
+            fallen.append(transport._slave(1).outputs())        # noqa: SLF001
+        time.sleep(0.002)
+    assert fallen and all(outputs == safe for outputs in fallen), fallen[:3]
+    wheel.wait_status(lambda s: s.reconnects > reconnects, 5.0, 'reconnected')
+    assert any('fell to SAFE_OP+ERROR, AL status code 0x001B' in s.stop_reason
+               for s in wheel.statuses), 'the fall was not reported'
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'running again on the commands that kept coming')
+
+
 def test_emergency_gives_the_profile_fault_text(start_segment, make_wheel):
     sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
     hd2 = make_wheel('imo_hd2', unit_id=1)

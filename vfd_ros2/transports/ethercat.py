@@ -417,7 +417,8 @@ class EthercatSegment:
     def __init__(self, settings: SegmentSettings,
                  on_emergency: Callable[[Emergency], None] | None = None,
                  on_slave_lost: Callable[[int], None] | None = None,
-                 on_slave_returned: Callable[[int], None] | None = None) -> None:
+                 on_slave_returned: Callable[[int], None] | None = None,
+                 on_slave_fell: Callable[[int, int, int], None] | None = None) -> None:
         if settings.cycle_time_s <= 0:
             raise ValueError('cycle_time_s must be positive')
         self.settings = settings
@@ -425,6 +426,10 @@ class EthercatSegment:
         self.on_emergency = on_emergency
         self.on_slave_lost = on_slave_lost
         self.on_slave_returned = on_slave_returned
+        #: (position, AL status, AL status code) of a slave found below its target state,
+        #: called before the supervisor brings it back (under the state lock: quick, and
+        #: no lock of the caller's)
+        self.on_slave_fell = on_slave_fell
         self._master: Any = None
         self._slaves: list[EthercatSlave] = []
         self._io_lock = threading.Lock()
@@ -727,6 +732,8 @@ class EthercatSegment:
                         log.info('EtherCAT slave %d found again', slave.position + 1)
                         soem.reconfig(timeout=3000)
                     continue
+                if self.on_slave_fell:
+                    self.on_slave_fell(slave.position, slave.al_status, slave.al_status_code)
                 if slave.al_status & AL_ERROR_FLAG:        # acknowledge, then go on
                     soem.state = (slave.al_status & AL_STATE_MASK) | AL_ERROR_FLAG
                     soem.write_state()
@@ -925,6 +932,9 @@ class EthercatTransport(Transport):
         self._segment: EthercatSegment | None = None
         self._lock = threading.RLock()
         self._missed_seen = (0, 0.0)      # missed cycles as last seen, and when they grew
+        # unit -> why: its slave fell below OP by itself since its drive opened it (plain
+        # dict operations: the supervisor sets it holding the segment's state lock)
+        self._fell: dict[int, str] = {}
 
     @classmethod
     def from_settings(cls, settings: Mapping[str, Any]) -> 'EthercatTransport':
@@ -1052,7 +1062,8 @@ class EthercatTransport(Transport):
             watchdog = min(active) if active else (0.0 if watchdogs else None)
             settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': watchdog})
             segment = EthercatSegment(settings, on_slave_lost=self._on_lost,
-                                      on_slave_returned=self._on_returned)
+                                      on_slave_returned=self._on_returned,
+                                      on_slave_fell=self._on_fell)
             try:
                 identities = segment.open()
                 self._locate(segment)
@@ -1191,6 +1202,21 @@ class EthercatTransport(Transport):
             except ValueError:
                 pass
 
+    def _on_fell(self, position: int, al_status: int, code: int) -> None:
+        # A slave its drive drives fell below OP by itself: it gets its safe outputs
+        # before the supervisor brings it back, and its drive is told of the fall (reads
+        # and writes fail) until it reconnects. Back in OP on the last command, it would
+        # run on it, and the drive would be walked back to Operation Enabled on it.
+        unit = next((u for u, p in self._where.items() if p == position + 1), None)
+        if unit is None or unit not in self._open_units or unit in self._fell:
+            return
+        self._on_lost(position)
+        self._fell[unit] = (f'EtherCAT slave {unit} left OP: it fell to '
+                            f'{al_state_name(al_status)}, AL status code 0x{code:04X} '
+                            f'({al_status_text(code)})')
+        log.warning('%s; it is brought back with safe outputs, its drive reconnects',
+                    self._fell[unit])
+
     def _on_returned(self, position: int) -> None:
         # A slave that was powered off comes back with its ESC defaults: set its SM
         # watchdog again (its drive reads it back and reports it when it reconnects).
@@ -1217,6 +1243,7 @@ class EthercatTransport(Transport):
             raise AlStateError(slave.position, ALState.OP, slave.al_status,
                                slave.al_status_code)
         with self._lock:
+            self._fell.pop(unit, None)
             self._open_units.add(unit)
 
     def close_slave(self, unit: int) -> None:
@@ -1238,6 +1265,7 @@ class EthercatTransport(Transport):
         with self._lock:
             segment, self._segment = self._segment, None
             self._open_units.clear()
+            self._fell.clear()
         if segment is not None:
             segment.close()
 
@@ -1259,6 +1287,9 @@ class EthercatTransport(Transport):
     def write_outputs(self, unit: int, data: bytes) -> None:
         """Send ``data`` as slave ``unit``'s RxPDO bytes from the next cycle on."""
         slave = self._slave(unit)
+        fell = self._fell.get(unit)
+        if fell:                            # its safe outputs stand until it reconnects
+            raise EthercatError(fell)
         try:
             slave.set_outputs(data)
         except ValueError as exc:
@@ -1289,7 +1320,11 @@ class EthercatTransport(Transport):
             self.count_unit(unit, 'timeouts')
             raise CommTimeout(f'EtherCAT slave {unit} lost (no answer on '
                               f'{self.settings.interface})')
-        if slave.state is ALState.NONE:        # not answering, not yet long enough for lost
+        fell = self._fell.get(unit)
+        if fell:
+            self.count_unit(unit, 'exceptions')
+            raise EthercatError(fell)
+        if slave.state is ALState.NONE:        # no state read yet, or silent past lost_after_s
             self.count_unit(unit, 'timeouts')
             raise CommTimeout(f'EtherCAT slave {unit} does not answer on '
                               f'{self.settings.interface}')
