@@ -764,3 +764,33 @@ def test_drives_whose_connects_keep_failing_are_tried_after_the_others():
     finally:
         bus.shutdown()
         simulated.stop()
+
+
+def test_the_first_drive_in_connect_order_is_connected_wherever_it_sits_on_the_bus(
+        tmp_path, monkeypatch):
+    """On a Modbus line connects run in bus order within a budget.
+
+    The head of the connect order (a drive that just rebooted) was the one left out
+    when two failing drives listed before it took the budget.
+    """
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': str(tmp_path / 'none')},
+        'drives': {f'd{unit}': {'transport.unit_id': unit} for unit in (1, 2, 3)}}))
+    first, second, rebooted = (bus.controllers[f'd{unit}'] for unit in (1, 2, 3))
+    allowed: dict[str, bool] = {}
+    clock = [0.0]
+
+    def command_phase(name: str, connect_allowed: bool) -> None:
+        allowed[name] = connect_allowed
+        clock[0] += 0.1 if connect_allowed else 0.0       # a connect that takes its plan
+    for name, controller in bus.controllers.items():
+        monkeypatch.setattr(controller, 'command_phase',
+                            lambda connect_allowed, name=name: command_phase(
+                                name, connect_allowed))
+        monkeypatch.setattr(controller, 'poll_phase', lambda: None)
+    monkeypatch.setattr(bus, '_clock', lambda: clock[0])
+    # each planned at 0.1 s, 0.25 s of budget: the head and one more
+    monkeypatch.setattr(bus, '_connect_candidates', lambda controllers: (
+        {rebooted: 0.1, first: 0.1, second: 0.1}, 0.25))
+    bus.step()
+    assert allowed == {'d1': True, 'd2': False, 'd3': True}, allowed

@@ -284,15 +284,22 @@ class Bus:
         else:
             candidates, budget = self._connect_candidates(controllers)
         spent, tried = 0.0, 0   # the link time this cycle's connects took, measured
+        # The first in connect order is tried whatever its place on the bus; the others
+        # must leave it room until it has been (the drives are served in bus order).
+        head = next(iter(candidates), None)
+        reserved = candidates.get(head, 0.0)
         self._command_waiting = False           # every command is written now
         self._plan_watchdog_check()
         for controller in controllers:          # commands first, for every drive ...
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
             cost = candidates.get(controller)
-            # After the first, a connect must still fit what the others really took
+            # Besides the head, a connect must still fit what the others really took
             # (a slow drive's connect takes its timeouts, not the wire's time).
-            connect = cost is not None and (not tried or spent + cost <= budget)
+            if controller is head:
+                connect, reserved = True, 0.0
+            else:
+                connect = cost is not None and spent + cost + reserved <= budget
             if connect:
                 # A connect is several exchanges: a new command or a tripped
                 # watchdog of a drive already done goes out before it.
@@ -378,7 +385,8 @@ class Bus:
         that cycle is free: connects may use it, so a bus starting 32 drives does not
         take 32 ever longer cycles to bring them online. In turn, as many as fit
         (each counted at its worst, a silent drive's timeout), at least one; ``step``
-        checks each after the first against the time the others really took.
+        tries the first whatever its place on the bus, and checks each other against
+        the time the others really took.
         """
         due = self._connect_order(controllers)
         if not due:
