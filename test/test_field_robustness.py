@@ -239,6 +239,11 @@ def test_motion_channels_are_refused_by_the_node_and_left_to_commissioning(profi
         assert why in str(refused.value)
         assert not controller.parameter_writable(code)
         controller.drive.check_write(code, value, running=False)     # vfd_params may
+    # Nor the set-up for bus control an integrator manages (apply_commissioning false):
+    # another value gives the motor to the terminals (MH B00.06: a DI reverses it).
+    for item in controller.drive.profile.commissioning:
+        with pytest.raises(ParameterError, match=r'left to you \(apply_commissioning false\)'):
+            controller.check_parameter_write(item.code, item.value)
 
 
 def test_no_run_before_the_first_status_read_after_connect(tmp_path):

@@ -288,12 +288,18 @@ class DriveController:
 
     def _refused_while_driven(self, parameter: Parameter) -> str:
         """Return why the node refuses to write ``parameter`` itself ('' if it does not)."""
-        if self.config.apply_commissioning:
-            # what this drive writes at connect (an EtherCAT drive has its own list)
-            for item in getattr(self.drive, 'commissioning', self.drive.profile.commissioning):
-                if item.code == parameter.code:
+        # what this drive writes at connect (an EtherCAT drive has its own list): where
+        # the drive takes its commands and speed from, and how it reacts to the bus
+        for item in getattr(self.drive, 'commissioning', self.drive.profile.commissioning):
+            if item.code == parameter.code:
+                if self.config.apply_commissioning:
                     return (f'it is set to {item.value:g} at every connect ({item.why}): '
                             'set apply_commissioning false to manage it yourself')
+                # Managed by the integrator, still not through a running node: another
+                # value may give the motor to the terminals or the keypad.
+                return (f'it is part of the set-up for bus control ({item.value:g}: '
+                        f'{item.why}), left to you (apply_commissioning false): set it with '
+                        'vfd_params or at the keypad')
         return self._driver_settings.get(parameter.code, '')
 
     def check_parameter_write(self, key: str, value: float) -> None:
