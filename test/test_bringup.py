@@ -279,3 +279,28 @@ def test_loop_errors_are_logged_once_with_a_traceback_then_counted(caplog):
     assert len(caplog.records) == 1 and caplog.records[0].exc_info is not None
     loop._tell_repeats(at_end=True)      # as the loop ends: the repeats are told, not lost
     assert len(caplog.records) == 2 and '169 more times' in caplog.records[1].getMessage()
+
+
+def test_a_loop_failing_every_step_still_tells_another_errors_repeats(caplog, monkeypatch):
+    """Error B repeated, then only error A came (no good step): B's count stayed untold."""
+    import types
+
+    from vfd_ros2.control import loop as loop_module
+    from vfd_ros2.control.loop import LOOP_ERROR_LOG_PERIOD, CycleLoop
+    now = [1000.0]
+    monkeypatch.setattr(loop_module, 'time', types.SimpleNamespace(monotonic=lambda: now[0]))
+
+    def fail_a() -> None:
+        raise KeyError('a')
+
+    def fail_b() -> None:
+        raise ValueError('b')
+    loop = CycleLoop('d', 0.02, fail_a, lambda: None)
+    with caplog.at_level('ERROR', logger='vfd_ros2.control.loop'):
+        for _ in range(3):
+            loop._guarded(fail_b)
+        now[0] += LOOP_ERROR_LOG_PERIOD + 1
+        loop._guarded(fail_a)           # A's first: told in full
+        loop._guarded(fail_a)           # a repeat of A: B's two repeats are due by now
+    assert any('loop error again (2 more times, ValueError' in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]

@@ -652,3 +652,14 @@ def test_repeat_throttle_tells_each_kind_once_per_period_and_what_was_left():
     assert throttle.due(20.0) == [] and throttle.due(24.0) == [('a', 1, 10.0, False)]
     assert throttle.note('c', 16.0) is None
     assert throttle.due(16.5, at_end=True) == [('c', 1, 3.5, False)]
+
+
+def test_repeat_throttle_forgets_the_least_recently_seen_kind():
+    from vfd_ros2.protocol.repeats import RepeatThrottle
+    throttle = RepeatThrottle(period=10.0, max_kinds=2)
+    throttle.note('a', 0.0)
+    throttle.note('b', 1.0)
+    assert throttle.note('a', 2.0) is None          # 'a' seen again: 'b' is the older now
+    assert throttle.note('c', 3.0).first            # 'b' goes, with nothing untold
+    assert throttle.untold == 1                     # 'a''s repeat is kept
+    assert throttle.note('a', 4.0) is None

@@ -62,3 +62,16 @@ def test_offlines_not_logged_are_summed_up_once_the_drive_stays_online(caplog):
     assert lines == ['drive x offline: no reply',
                      f'drive x was offline 4 times more in the last '
                      f'{OFFLINE_LOG_PERIOD + 2.0:.0f} s: no reply']
+
+
+def test_failed_connects_count_in_a_row_until_online_or_closed():
+    """Their count orders a bus's connects; a drive closed on purpose starts afresh."""
+    link = LinkSupervisor('drive x', threshold=2, retry_period=0.5, clock=StepClock())
+    for _ in range(3):
+        link.connect_failed(CommTimeout('no reply'))
+    assert link.failed_connects == 3
+    link.closed('deactivated')
+    assert link.failed_connects == 0
+    link.connect_failed(CommTimeout('no reply'))
+    link.connected()
+    assert link.failed_connects == 0

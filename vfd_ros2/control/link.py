@@ -127,3 +127,4 @@ class LinkSupervisor:
         """Mark the link closed by the host on purpose (not a comm loss); ``reason`` says why."""
         self.online = False
         self.closed_reason = reason
+        self.failed_connects = 0     # reopened later, it takes its turn afresh

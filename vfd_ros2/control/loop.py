@@ -144,7 +144,8 @@ class CycleLoop:
             where = traceback.extract_tb(exc.__traceback__)[-1]
             kind = f'{type(exc).__name__} at {where.filename}:{where.lineno}'
             told = self._error_log.note(kind, time.monotonic())
-            if told is None:
+            if told is None:            # a repeat: another kind's may be due (no good step)
+                self._tell_repeats()
                 return
             if told.first:
                 log.exception('%s: loop error: %s', self.name, exc)

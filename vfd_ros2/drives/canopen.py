@@ -76,8 +76,10 @@ TPDO_SLACK = 0.25
 HEARTBEAT_TIMEOUT_PERIODS_MIN = 1.5
 #: s between two SYNCs at most that another SYNC producer is trusted with (sync_producer false)
 FOREIGN_SYNC_PERIOD = 0.5
-#: s a connect waits at most for the heartbeat that says NMT start was obeyed
-OPERATIONAL_WAIT_LONGEST = 1.0
+#: s a connect waits at most for the heartbeats that say whether NMT start was obeyed (it
+#: takes two to tell a refusal: a heartbeat period up to 2 s; a node that obeys answers
+#: within one period)
+OPERATIONAL_WAIT_LONGEST = 5.0
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms

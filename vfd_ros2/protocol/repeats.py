@@ -70,7 +70,7 @@ class RepeatThrottle:
     ``due()`` hands over the repeats whose period is over (all of them at the end),
     so a kind that repeated a few times and stopped is told too, not only one that
     comes back. At most ``max_kinds`` kinds are kept (texts may name values that
-    vary freely): a new kind beyond them makes the oldest forgotten.
+    vary freely): a new kind beyond them makes the least recently seen forgotten.
     """
 
     def __init__(self, period: float = 10.0, max_kinds: int = 32) -> None:
@@ -81,8 +81,10 @@ class RepeatThrottle:
 
     def note(self, kind: Hashable, now: float) -> Untold | None:
         """Count one event; return the repeats to tell with it, or None: not to tell."""
-        seen = self._kinds.get(kind)
-        if seen is None:
+        seen = self._kinds.pop(kind, None)
+        if seen is not None:
+            self._kinds[kind] = seen        # the least recently seen kind goes first
+        else:
             if len(self._kinds) >= self.max_kinds:
                 self.untold -= self._kinds.pop(next(iter(self._kinds)))[1]
             self._kinds[kind] = [now, 0]
