@@ -580,7 +580,7 @@ def test_missed_cycles_warn_while_they_go_missing_not_for_good(monkeypatch):
     monkeypatch.setattr(ethercat.time, 'monotonic', lambda: now[0])
     transport = ethercat.EthercatTransport(ethercat.SegmentSettings('eth9'))
     transport._segment = types.SimpleNamespace(     # noqa: SLF001 - the counters only
-        stats=lambda: types.SimpleNamespace(missed_cycles=missed[0], cycles=5000))
+        counts=lambda: types.SimpleNamespace(missed_cycles=missed[0], cycles=5000))
     assert transport.link_notes == ()
     missed[0] = 3
     assert transport.link_notes == ('3 missed process-data cycles of 5000 (2 ms), the last '
@@ -593,3 +593,27 @@ def test_missed_cycles_warn_while_they_go_missing_not_for_good(monkeypatch):
     assert transport.link_notes[0].startswith('4 missed')
     error = ethercat.AlStateError(2, ALState.OP, 0x00, 0x0000)
     assert str(error) == 'slave 3 did not reach OP: it does not answer'
+
+
+def test_each_cycle_reads_the_counters_not_the_sorted_jitter():
+    """Each drive's read takes the counters alone.
+
+    read_inputs took stats(), which sorts up to 100 000 jitter samples, for every
+    drive and cycle: a bus_node on EtherCAT went from 20 % to 83 % of a core in 35 s.
+    """
+    import types
+
+    from vfd_ros2.transports import ethercat
+    slave = types.SimpleNamespace(lost=False, state=ALState.OP, al_status=int(ALState.OP),
+                                  al_status_code=0, inputs_time=time.monotonic(),
+                                  inputs=lambda: b'\x27\x06')
+
+    def sorting_stats() -> None:
+        raise AssertionError('stats() called from the cycle')
+    transport = ethercat.EthercatTransport(ethercat.SegmentSettings('eth9'))
+    transport._segment = types.SimpleNamespace(     # noqa: SLF001
+        slaves=[slave], slave=lambda index: slave, stats=sorting_stats,
+        counts=lambda: ethercat.CycleCounts(1000, 0, 2, 1))
+    assert transport.read_inputs(1) == b'\x27\x06'
+    assert (transport.stats.transactions, transport.stats.bad_frames) == (1000, 2)
+    assert transport.link_notes == ()
