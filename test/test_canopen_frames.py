@@ -347,3 +347,26 @@ def test_a_node_that_ignores_nmt_start_is_not_taken_as_started(channel):
     finally:
         drive.close()
         sim_bus.stop()
+
+
+def test_reconnects_leave_no_pdo_subscriptions_behind(channel):
+    """save() subscribes RPDOs as well; only TPDO ones were removed at a reconnect.
+
+    Each reconnect of a node, on a channel kept open, left one callback on 0x201
+    holding the old RemoteNode (200 reconnects: 201 callbacks, about 26 KB each).
+    """
+    twin = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1)
+    sim_bus = SimulatedCanBus([twin], channel).start()
+    drive, transport = configured_cia402(channel)
+    try:
+        plan = drive.host_loss_plan(0.3, 0.02)
+        for _ in range(3):                          # what a reconnect does
+            drive.forget_state()
+            drive.open()
+            drive.configure(plan, apply_commissioning=True)
+        subscribers = transport.channel.network.subscribers
+        assert subscribers.get(0x201, []) == []     # its own RPDO1: never taken in
+        assert len(subscribers.get(0x181, [])) == 1     # TPDO1: the live node's only
+    finally:
+        drive.close()
+        sim_bus.stop()

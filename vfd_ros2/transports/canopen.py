@@ -914,6 +914,15 @@ class CanopenTransport(Transport):
         link = self._link(unit)
         if pdo.enabled and kind == 'tpdo':      # save() subscribed it for reception
             link.subscriptions.append((pdo.cob_id, pdo.on_message))
+        elif pdo.enabled and self.channel is not None:
+            # save() subscribes an RPDO too, which this host sends and never takes in (a
+            # second host's would be written into its map): each reconnect left one
+            # behind, holding the node it was made for
+            with self.channel.lock:
+                try:
+                    self.channel.network.unsubscribe(pdo.cob_id, pdo.on_message)
+                except (KeyError, ValueError):
+                    pass
         if kind == 'rpdo' and number == 1:
             link.synchronous = bool(objects) and transmission_type <= SYNCHRONOUS_MAX
 
