@@ -43,7 +43,7 @@ from vfd_ros2.profiles import Profile, load_profile
 from vfd_ros2.protocol.rtu_timing import character_time, frame_gap, reply_size, transaction_time
 from vfd_ros2.ros.drive_node import DriveNode
 from vfd_ros2.ros.executable import make_executor, spin_in_background
-from vfd_ros2.ros.messages import status_message
+from vfd_ros2.ros.messages import StatusMessage
 from vfd_ros2.transports.modbus import ModbusRtuTransport, PymodbusRtuTransport
 
 from .simproc import SimProcess, wait_port
@@ -866,11 +866,12 @@ except BaseException:
 
 
 def wake_cost(samples: int = 40, pause: float = 0.05) -> dict[str, Any]:
-    """CPU of building and publishing the first ``DriveStatus`` after a sleep, and the next.
+    """CPU of updating and publishing the first ``DriveStatus`` after a sleep, and the next.
 
     A node does its work in short bursts between sleeps (20 ms for a 50 Hz cycle,
     50 ms between status publishes); on a shared VM the caches are cold by then.
-    Each sample sleeps ``pause``, then times (this thread's CPU) building and
+    Each sample sleeps ``pause``, then times (this thread's CPU) updating (the kept
+    message of ``StatusMessage``, as a node does: the speed and counters moved) and
     publishing one message, then nine more back to back: medians of ``samples``.
     The topic has one subscriber, in a process of its own, as a robot's status has.
     """
@@ -889,7 +890,11 @@ def wake_cost(samples: int = 40, pause: float = 0.05) -> dict[str, Any]:
             if time.monotonic() > deadline or subscriber.poll() is not None:
                 raise RuntimeError('the status subscriber process did not come up')
             time.sleep(0.1)
-        state = DriveState(hardware_id='boneng_am@/dev/ttyUSB0#1', online=True)
+        # as a node's kept message sees them: each poll moves the speed and the counters
+        polls = iter([DriveState(hardware_id='boneng_am@/dev/ttyUSB0#1', online=True,
+                                 transactions=index, measured_velocity=0.001 * index)
+                      for index in range(10 * samples)])
+        kept = StatusMessage('frame', 'profile')
         stamp = node.get_clock().now().to_msg()
         figures: dict[str, list[float]] = {key: [] for key in (
             'message_first_us', 'message_following_us', 'publish_first_us',
@@ -898,12 +903,12 @@ def wake_cost(samples: int = 40, pause: float = 0.05) -> dict[str, Any]:
         for _ in range(samples):
             time.sleep(pause)
             t0 = clock()
-            message = status_message(state, stamp, 'frame', 'profile')
+            message = kept.update(next(polls), stamp)
             t1 = clock()
             publisher.publish(message)
             t2 = clock()
             for _ in range(9):
-                status_message(state, stamp, 'frame', 'profile')
+                kept.update(next(polls), stamp)
             t3 = clock()
             for _ in range(9):
                 publisher.publish(message)

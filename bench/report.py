@@ -183,8 +183,9 @@ def render_table(results: dict[str, Any]) -> str:
                      + ('' if wake is None or 'error' in wake else
                         f"\n\nThe same work costs more as the first thing after a sleep, as "
                         f"it comes in a node (the thread's CPU, medians of {wake['samples']}): "
-                        f"after {wake['pause_ms']:g} ms asleep, building a `DriveStatus` from a "
-                        f"drive's state took {wake['message_first_us']:g} µs and publishing it "
+                        f"after {wake['pause_ms']:g} ms asleep, updating a node's kept "
+                        f"`DriveStatus` to a drive's next state took "
+                        f"{wake['message_first_us']:g} µs and publishing it "
                         f"(one subscriber, another process) "
                         f"{wake['publish_first_us']:g} µs; the next nine, back to back, "
                         f"{wake['message_following_us']:g} and "

@@ -29,12 +29,10 @@ from typing import Any, Callable
 
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
@@ -57,13 +55,13 @@ from .deferred_service import Deferred, create_deferred_service
 from .executable import run_node
 from .managed import DriveTransitions, ManagedTransitions, parse_options
 from .messages import (
+    StatusMessage,
     add_loop_rate,
     default_joint_name,
     diagnostic_status,
     drive_diagnostic_name,
     fault_message,
-    joint_state_message,
-    status_message,
+    update_joint_state,
 )
 from .parameters import (
     LiveParameters,
@@ -129,15 +127,16 @@ class DriveNode(Node):
             self._last_fault = NO_FAULT
             self._fault_published = False
             # the snapshot ~/status and joint_states were last built from, and those messages
+            # (kept and updated: see StatusMessage)
             self._published_state: DriveState | None = None
-            self._status_msg = DriveStatus()
-            self._joint_msg = JointState()
+            self._status = StatusMessage(self.frame_id, self.profile_name)
 
             self.status_pub = self.create_publisher(DriveStatus, '~/status', 10)
             self.fault_pub = self.create_publisher(DriveFault, '~/fault', FAULT_QOS)
             self.joint_name = str(values['joint_name']) or \
                 default_joint_name(self.get_namespace(), self.get_name())
             self.joint_pub = self.create_publisher(JointState, 'joint_states', 10)
+            self._joint_msg = JointState(name=[self.joint_name])
             self.create_subscription(Float64, '~/velocity_command', self._on_velocity, 10)
             for topic in self.controller.drive.profile.setpoints:
                 self.create_subscription(Float64, f'~/{topic}',
@@ -264,22 +263,20 @@ class DriveNode(Node):
         try:
             state = self.controller.state
             self._ever_online |= state.online
-            now = self.get_clock().now()
-            stamp = now.to_msg()
+            now = self.get_clock().now().nanoseconds
+            status = self._status.message
+            _set_stamp(status.header.stamp, now)
             measured = state is not self._published_state
             if measured:
-                self._status_msg = status_message(state, stamp, self.frame_id,
-                                                  self.profile_name)
-                self._joint_msg = joint_state_message([(self.joint_name, state)],
-                                                      self._measured_at(state, now))
+                self._status.update(state)
+                update_joint_state(self._joint_msg, [state])
+                _set_stamp(self._joint_msg.header.stamp, self._measured_at(state, now))
                 self._published_state = state
-            else:
-                # The loop has not polled since (a drive on a long bus cycle): the same
-                # snapshot gives the same status with a new stamp. joint_states carries
-                # when its position was measured, so it waits for the next: the same
-                # stamp twice is TF_REPEATED_DATA to robot_state_publisher's listeners.
-                self._status_msg.header.stamp = stamp
-            self.status_pub.publish(self._status_msg)
+            # else: the loop has not polled since (a drive on a long bus cycle): the same
+            # snapshot gives the same status with a new stamp. joint_states carries when
+            # its position was measured, so it waits for the next: the same stamp twice
+            # is TF_REPEATED_DATA to robot_state_publisher's listeners.
+            self.status_pub.publish(status)
             if measured:
                 self.joint_pub.publish(self._joint_msg)
             fault = state.active_fault
@@ -287,6 +284,7 @@ class DriveNode(Node):
                     (self._last_fault.code, self._last_fault.subcode):
                 # A cleared fault is published once as inactive with its last code.
                 shown, active = (fault, True) if fault.active else (self._last_fault, False)
+                stamp = TimeMsg(sec=status.header.stamp.sec, nanosec=status.header.stamp.nanosec)
                 self.fault_pub.publish(fault_message(shown, active, stamp, state.hardware_id))
                 self._last_fault = fault
                 self._fault_published = True
@@ -295,17 +293,17 @@ class DriveNode(Node):
                 self.get_logger().error(f'status publishing failed: {exc}',
                                         throttle_duration_sec=5.0)
 
-    def _measured_at(self, state: DriveState, now: Time) -> TimeMsg:
-        """Return when ``state`` was measured, on the node's clock (JointState's stamp).
+    def _measured_at(self, state: DriveState, now: int) -> int:
+        """Return when ``state`` was measured, in ns on the node's clock (``now``: its time).
 
-        Two wheels' positions then pair up by time (diff_drive), although the bus
-        read them a cycle apart and their nodes publish them together. Under
-        simulated time, or for a state older than a second, the publishing time.
+        JointState's stamp: two wheels' positions then pair up by time (diff_drive),
+        although the bus read them a cycle apart and their nodes publish them
+        together. Under simulated time, or for a state older than a second, ``now``.
         """
         age = self.controller.age_of(state)
         if self.get_clock().ros_time_is_active or not 0.0 <= age < 1.0:
-            return now.to_msg()
-        return (now - Duration(nanoseconds=round(age * 1e9))).to_msg()
+            return now
+        return now - round(age * 1e9)
 
     def diagnostic_status(self) -> DiagnosticStatus:
         """Return this drive's entry on /diagnostics."""
@@ -424,6 +422,10 @@ class DriveNode(Node):
         if self._owns_controller:
             self.controller.shutdown()
         super().destroy_node()
+
+
+def _set_stamp(stamp: TimeMsg, nanoseconds: int) -> None:
+    stamp.sec, stamp.nanosec = divmod(nanoseconds, 1_000_000_000)
 
 
 class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
