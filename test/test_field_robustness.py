@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from contextlib import contextmanager
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -125,15 +126,7 @@ class CommandStream:
 
 def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
     """The issue's case: a ~0.6 s bus cycle and C02.04 = 0.3 s faulted every drive."""
-    profile = shipped_profile('boneng_am')
-    sims = [SimulatedDrive(profile, unit, {'acceleration_time': 0.5}) for unit in range(1, 5)]
-    port = str(tmp_path / 'line')
-    line = SimulatedRtuLine(sims, port, baudrate=9600, emulate_wire_time=True).start()
-    bus = am_bus(port, 4, 9600, auto_enable=True)
-    commands = CommandStream(list(bus.controllers.values()), 2.0, 0.05)
-    bus.start()
-    try:
-        wait_for(lambda: all(s.run_requested for s in sims), 15.0, 'all four running')
+    with four_am_drives_running(tmp_path, 9600, 0.5, 2.0, emulate_wire_time=True) as (sims, bus):
         written = sims[0].value('C02.04')
         assert written >= 2 * bus.addressing_interval
         deadline = time.monotonic() + 3 * written
@@ -141,6 +134,23 @@ def test_four_drives_at_9600_run_without_tripping_their_own_timeout(tmp_path):
             assert all(s.fault_code == 0 for s in sims), [s.fault_code for s in sims]
             time.sleep(0.05)
         assert all(c.state.online and not c.state.fault for c in bus.controllers.values())
+
+
+@contextmanager
+def four_am_drives_running(tmp_path, baudrate: int, acceleration_time: float,
+                           velocity: float, **line_options):
+    """Four BONENG AM drives on one simulated line, a bus commanding all four to run."""
+    profile = shipped_profile('boneng_am')
+    sims = [SimulatedDrive(profile, unit, {'acceleration_time': acceleration_time})
+            for unit in range(1, 5)]
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine(sims, port, baudrate=baudrate, **line_options).start()
+    bus = am_bus(port, 4, baudrate, auto_enable=True)
+    commands = CommandStream(list(bus.controllers.values()), velocity, 0.05)
+    bus.start()
+    try:
+        wait_for(lambda: all(s.run_requested for s in sims), 15.0, 'all four running')
+        yield sims, bus
     finally:
         commands.stop()
         bus.shutdown()
@@ -339,15 +349,7 @@ def test_slow_replies_raise_the_drives_comm_loss_timeout_before_it_trips(tmp_pat
     its timeout: E35.03 with the host there. The bus raises each drive's timeout before
     it is reached, mid-cycle, and writes it; nothing trips.
     """
-    profile = shipped_profile('boneng_am')
-    sims = [SimulatedDrive(profile, unit, {'acceleration_time': 0.3}) for unit in range(1, 5)]
-    port = str(tmp_path / 'line')
-    line = SimulatedRtuLine(sims, port, baudrate=115200).start()
-    bus = am_bus(port, 4, 115200, auto_enable=True)
-    commands = CommandStream(list(bus.controllers.values()), 1.0, 0.05)
-    bus.start()
-    try:
-        wait_for(lambda: all(s.run_requested for s in sims), 10.0, 'all four running')
+    with four_am_drives_running(tmp_path, 115200, 0.3, 1.0) as (sims, bus):
         planned = sims[0].value('C02.04')
         assert [s.value('C02.04') for s in sims] == [planned] * 4
         for sim in sims:
@@ -371,10 +373,6 @@ def test_slow_replies_raise_the_drives_comm_loss_timeout_before_it_trips(tmp_pat
             assert state.online and not state.fault and state.reconnects == 0
             assert state.protection.timeout == pytest.approx(sim.value('C02.04'))
             assert 'passed between two polls (slow replies' in state.protection.describe()
-    finally:
-        commands.stop()
-        bus.shutdown()
-        line.stop()
 
 
 def test_a_drive_node_whose_loop_runs_short_of_control_rate_warns(make_harness):
