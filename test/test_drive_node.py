@@ -247,6 +247,28 @@ def test_fault_is_published_with_text_and_reset_is_verified(make_harness):
                   'motion after reset')
 
 
+def test_enable_with_a_fault_latched_that_the_drive_has_cleared_is_refused_at_once(
+        make_harness):
+    # The drive stops showing its fault; the node holds it until ~/reset_fault. An
+    # enable is refused at once, naming the reset (it waited out action_timeout and
+    # answered "the drive does not report running"), and leaves the node enabled.
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.sim.inject_fault(7, 1)
+    h.wait_status(lambda s: s.fault_code == 7, 3.0, 'fault seen')
+    with h.sim.lock:                           # a fault the drive clears by itself
+        h.sim.fault_code = h.sim.fault_subcode = 0
+    h.wait_status(lambda s: s.fault_code == 0 and s.state == 'fault', 3.0, 'fault latched')
+    started = time.monotonic()
+    response = h.trigger('enable')
+    assert not response.success and 'reset_fault' in response.message, response.message
+    assert time.monotonic() - started < 1.0
+    assert not h.sim.run_requested
+    assert h.trigger('reset_fault').success
+    h.wait_status(lambda s: s.running, 5.0, 'running after the reset, without another enable')
+
+
 def test_unknown_fault_code_is_reported_not_crashing(make_harness):
     h = make_harness()
     h.sim.inject_fault(49, 2)

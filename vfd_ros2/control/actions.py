@@ -218,6 +218,11 @@ class ServiceActions:
             fault = reading.fault
             return ActionResult(False, f'drive has fault {fault.display} ({fault.name}): '
                                 'call ~/reset_fault first')
+        if self.intent.fault_latched:
+            # The drive no longer shows the fault it had; the node holds it until reset,
+            # so an enable could not run the drive (and must not change what it holds).
+            return ActionResult(False, 'a fault is latched (the drive no longer reports it): '
+                                'call ~/reset_fault first')
         if reading.unsafe:
             return ActionResult(False, f'not enabled: {reading.unsafe}')
         intent = self.intent
