@@ -278,7 +278,7 @@ class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
     def __init__(self, node_name: str = 'bus', **kwargs: Any) -> None:
         super().__init__(node_name, managed=True, **kwargs)
         self.transitions = DriveTransitions(
-            self.get_logger().error, self.bus.start, self.bus.shutdown,
+            self.get_logger(), self.bus.start, self.bus.shutdown,
             {node.get_fully_qualified_name(): (node.controller, self._gate(node))
              for node in self.drive_nodes})
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
@@ -306,3 +306,7 @@ def make_bus_node(args: list[str] | None = None, **kwargs: Any) -> BusNode:
 def main(args: list[str] | None = None) -> int:
     return run_node('bus_node', lambda: make_bus_node(args), args,
                     extra_nodes=lambda node: node.drive_nodes)
+
+
+if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
+    raise SystemExit(main())

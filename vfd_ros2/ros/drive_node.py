@@ -434,7 +434,7 @@ class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
     def __init__(self, node_name: str = 'drive', **kwargs: Any) -> None:
         super().__init__(node_name, managed=True, **kwargs)
         self.transitions = DriveTransitions(
-            self.get_logger().error, self.controller.start, self.controller.shutdown,
+            self.get_logger(), self.controller.start, self.controller.shutdown,
             {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
         self._refuse_unavailable_transitions()
@@ -465,3 +465,7 @@ def autostart(node: LifecycleNode) -> None:
 
 def main(args: list[str] | None = None) -> int:
     return run_node('drive_node', lambda: make_drive_node(args), args)
+
+
+if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
+    raise SystemExit(main())

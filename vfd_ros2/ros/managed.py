@@ -30,6 +30,7 @@ from concurrent.futures import Future
 from typing import Callable, Mapping
 
 from lifecycle_msgs.srv import ChangeState
+from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
 from rclpy.utilities import remove_ros_args
 
@@ -96,10 +97,10 @@ def failures(done: Mapping[str, ActionResult]) -> str:
 class DriveTransitions:
     """The transitions of one or several drives on one loop (a drive's or a bus's)."""
 
-    def __init__(self, log: Callable[[str], None], start: Callable[[], None],
+    def __init__(self, logger: RcutilsLogger, start: Callable[[], None],
                  stop_loop: Callable[[], None],
                  gates: Mapping[str, tuple[DriveController, Callable[[bool], None]]]) -> None:
-        self._log = log
+        self._logger = logger
         self._start = start
         self._stop_loop = stop_loop
         self._gates = gates
@@ -108,7 +109,7 @@ class DriveTransitions:
     def _fail(self, transition: str, reason: str, code: TransitionCallbackReturn
               ) -> TransitionCallbackReturn:
         self.last_error = f'{transition} failed: {reason}'
-        self._log(self.last_error)
+        self._logger.error(self.last_error)
         return code
 
     def _allow(self, allowed: bool) -> None:
@@ -149,8 +150,9 @@ class DriveTransitions:
         enabling = {}
         for name, (controller, _) in self._gates.items():
             if controller.config.auto_enable and controller.intent.asked_stop:
-                self._log(f'activate: {name} not enabled: a ~/stop or ~/disable asked '
-                          'earlier holds until ~/enable')
+                # (as the operator asked: a warning, not an error)
+                self._logger.warning(f'activate: {name} not enabled: a ~/stop or ~/disable '
+                                     'asked earlier holds until ~/enable')
             elif controller.config.auto_enable:
                 enabling[name] = controller
         done = results({name: c.submit('enable') for name, c in enabling.items()},
@@ -184,8 +186,8 @@ class DriveTransitions:
         return self.cleanup()
 
     def error(self) -> TransitionCallbackReturn:
-        self._log(f'error processing ({self.last_error or "unexpected error"}): '
-                  'stop written, link closed')
+        self._logger.error(f'error processing ({self.last_error or "unexpected error"}): '
+                           'stop written, link closed')
         return self.cleanup()
 
 
