@@ -522,3 +522,7 @@ class DiffDriveNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     return run_node('diff_drive', DiffDriveNode, args)
+
+
+if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
+    raise SystemExit(main())

@@ -261,3 +261,7 @@ class SimDriveNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     return run_node('sim_drive', SimDriveNode, args)
+
+
+if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
+    raise SystemExit(main())
