@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 
 from harness import wait_for
 from vfd_ros2.ros.executable import spin_in_background
-from vfd_ros2.sim.node import SimDriveNode
+from vfd_ros2.sim.node import LIVE_PARAMETERS, SimDriveNode
 from vfd_ros2.srv import InjectFault
 from vfd_ros2.transports.modbus import ModbusRtuTransport, ModbusTcpTransport
 
@@ -121,3 +121,14 @@ def test_run_time_parameters_work_in_both_directions(sim_node, tmp_path):
     too_much = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=1.5)
     assert not set_parameter(client, 'wrong_echo_rate', too_much).successful
     assert node.line.faults.wrong_echo_rate == 0.0
+
+
+def test_only_what_the_simulator_applies_at_run_time_is_described_writable(sim_node, tmp_path):
+    # (rclpy's use_sim_time too: the simulator refuses it at run time)
+    node, _ = sim_node(port=str(tmp_path / 'line'))
+    names = node.list_parameters([], 0).names
+    writable = {name for name in names if not node.describe_parameter(name).read_only}
+    assert writable == set(LIVE_PARAMETERS)
+    assert 'start-up' in node.describe_parameter('use_sim_time').description
+    for name in set(names) - writable:
+        assert not node.set_parameters([Parameter(name, value=True)])[0].successful, name

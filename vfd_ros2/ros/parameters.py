@@ -135,6 +135,28 @@ def section_matches(section: str, node: str) -> bool:
     return re.fullmatch(pattern, node.strip('/')) is not None
 
 
+def describe_read_only_except(node: Node, live: Iterable[str]) -> None:
+    """Describe read-only every parameter of ``node`` but ``live`` that rclpy left writable.
+
+    ``use_sim_time`` (rclpy's own) is set at start-up only (``-p``); described
+    writable, tools offered a change that the node's callback always refuses.
+    """
+    live = set(live)
+    for name in node.list_parameters([], 0).names:
+        if name in live:
+            continue
+        current = node.describe_parameter(name)
+        if current.read_only:
+            continue
+        text = current.description
+        node.set_descriptor(name, ParameterDescriptor(
+            description=(text + ' ' if text else '') + '[set at start-up only]',
+            type=current.type, read_only=True,
+            additional_constraints=current.additional_constraints,
+            integer_range=current.integer_range,
+            floating_point_range=current.floating_point_range))
+
+
 class LiveParameters:
     """The set-parameters callback of a node: validate everything, then apply, or refuse.
 
@@ -151,28 +173,8 @@ class LiveParameters:
         self.live = set(live)
         self.ranges = ranges or {}
         self._apply = apply
-        self._describe_the_others_read_only()       # (before this callback would refuse it)
+        describe_read_only_except(node, self.live)  # (before this callback would refuse it)
         node.add_on_set_parameters_callback(self)
-
-    def _describe_the_others_read_only(self) -> None:
-        """Declare read-only what rclpy declared writable and this node does not apply.
-
-        ``use_sim_time`` (rclpy's own) is set at start-up only (``-p``); described
-        writable, tools offered a change that this callback always refuses.
-        """
-        for name in self.node.list_parameters([], 0).names:
-            if name in self.live:
-                continue
-            current = self.node.describe_parameter(name)
-            if current.read_only:
-                continue
-            text = current.description
-            self.node.set_descriptor(name, ParameterDescriptor(
-                description=(text + ' ' if text else '') + '[set at start-up only]',
-                type=current.type, read_only=True,
-                additional_constraints=current.additional_constraints,
-                integer_range=current.integer_range,
-                floating_point_range=current.floating_point_range))
 
     def __call__(self, parameters: list[Parameter]) -> SetParametersResult:
         changes: dict[str, Any] = {}

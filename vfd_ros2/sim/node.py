@@ -41,7 +41,7 @@ from vfd_ros2.srv import InjectFault
 from ..errors import VfdError
 from ..profiles import load_profile
 from ..ros.executable import run_node
-from ..ros.parameters import LIVE_NOTE, descriptor
+from ..ros.parameters import LIVE_NOTE, describe_read_only_except, descriptor
 from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
 from .rtu_line import LineFaults, SimulatedRtuLine
@@ -60,6 +60,11 @@ def parse_initial_values(items: list[str]) -> dict[str, float]:
             raise ValueError(f'initial value {item!r} is not CODE=VALUE')
         values[code.strip()] = float(value)
     return values
+
+
+#: what ``SimDriveNode._apply`` changes at run time (the others are set at start-up)
+LIVE_PARAMETERS = ('silent_unit_ids', 'refused', 'corrupt_rate', 'late_rate', 'late_delay',
+                   'late_deaf', 'wrong_echo_rate', 'trailing_rate')
 
 
 class SimDriveNode(Node):
@@ -99,6 +104,7 @@ class SimDriveNode(Node):
         else:
             self.line, where = self._modbus(profile, transport, port, unit_ids, initial,
                                             baudrate, wire_time, corrupt, tcp_port)
+        describe_read_only_except(self, LIVE_PARAMETERS)
         self.add_on_set_parameters_callback(self._on_parameters)
         self._apply([self.get_parameter(name) for name in (
             'refused', 'late_rate', 'late_delay', 'late_deaf', 'wrong_echo_rate',
