@@ -253,6 +253,8 @@ def test_a_mistyped_option_is_refused_not_taken_for_a_plain_node():
     assert parse_options(['drive_node', '--managed', '--ros-args', '-p', 'x:=1']).managed
     with pytest.raises(ParameterError, match='unknown argument.* --manged'):
         parse_options(['drive_node', '--manged', '--ros-args', '-p', 'x:=1'])
+    with pytest.raises(ParameterError, match='give --managed too'):
+        parse_options(['drive_node', '--autostart', '--ros-args', '-p', 'x:=1'])
 
 
 def test_a_params_file_that_does_not_parse_is_one_line_not_a_traceback(tmp_path, capsys):

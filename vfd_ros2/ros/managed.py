@@ -64,6 +64,9 @@ def parse_options(args: list[str] | None) -> argparse.Namespace:
     if unknown:
         raise ParameterError(f'unknown argument(s) {" ".join(unknown)}: the options are '
                              '--managed and --autostart; ROS arguments go after --ros-args')
+    if options.autostart and not options.managed:
+        # (a plain node starts at once anyway: the integrator meant a managed one)
+        raise ParameterError('--autostart is for a managed node: give --managed too')
     return options
 
 
