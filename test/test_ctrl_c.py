@@ -140,3 +140,30 @@ print(probe() is None, gc.get_freeze_count() >= 500, len(gc.get_objects()) < 500
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                             timeout=60)
     assert result.stdout.split() == ['True', 'True', 'True'], result.stdout + result.stderr
+
+
+@pytest.mark.parametrize('signal_number', [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_during_a_managed_autostart_ends_the_node_cleanly(tmp_path, signal_number):
+    """Stopped while configure waits for a drive that does not answer: no traceback, rc 0."""
+    master, slave = os.openpty()         # a line where nobody answers
+    try:
+        command = ['drive_node', '--managed', '--autostart', '--ros-args',
+                   '-r', f'__ns:=/sig{uuid.uuid4().hex[:8]}',
+                   '-p', f'transport.port:={os.ttyname(slave)}']
+        env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+        process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, text=True)
+        seen = ''
+        deadline = time.monotonic() + 30.0
+        while 'driving' not in seen:     # the node is built: configure comes next
+            assert time.monotonic() < deadline and process.poll() is None, seen
+            seen += process.stdout.readline()
+        time.sleep(0.5)                  # configure waits ~2 s for the drive
+        process.send_signal(signal_number)
+        output, _ = process.communicate(timeout=20.0)
+        output = seen + output
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert 'Traceback' not in output and 'RCLError' not in output, output
+    assert process.returncode == 0, output
