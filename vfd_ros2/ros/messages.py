@@ -53,10 +53,10 @@ def status_message(state: DriveState, stamp: Time, frame_id: str, profile: str) 
 class StatusMessage:
     """One drive's ``DriveStatus``, kept and brought up to date field by field.
 
-    Building one from scratch sets each of its 45 fields twice (the constructor's
-    defaults, then the values) and converts every one: 187 us of CPU as the first
-    thing after a 50 ms sleep, as a status timer runs, against ~60 us to set the
-    few that change from one poll to the next (the speed, the counters).
+    Building one from scratch sets each of its 41 fields twice (the constructor's
+    defaults, then the values): ~200 us of CPU as the first thing after a 50 ms
+    sleep, as a status timer runs it, against ~75 us to set the few that change
+    from one poll to the next (the speed, the counters).
     ``update`` sets the fields that depend on the fields of ``DriveState`` that
     differ from the state it showed last (``_SHOWN_FROM`` maps one to the other).
     """
