@@ -142,6 +142,11 @@ def test_drive_node_command_timeout_and_rates_are_applied(make_harness):
     assert not set_parameter(h.tester, node, 'status_rate', 0.0).successful
     assert h.node._rate_timers['status_rate'].timer_period_ns == 5_000_000_000
     assert h.node.controller.config.shown_period == pytest.approx(2.0)
+    # Faster again: at once, not after the 5 s period under way has run out.
+    assert set_parameter(h.tester, node, 'status_rate', 20.0).successful
+    count = len(h.statuses)
+    time.sleep(1.0)
+    assert len(h.statuses) - count >= 10, len(h.statuses) - count
 
 
 def test_descriptors_tell_live_from_read_only_with_ranges(make_harness):

@@ -224,7 +224,9 @@ class DriveNode(Node):
         for name, rate in rates.items():
             setattr(self, name, rate)
             if name in self._rate_timers:
-                self._rate_timers[name].timer_period_ns = round(1e9 / rate)
+                timer = self._rate_timers[name]
+                timer.timer_period_ns = round(1e9 / rate)
+                timer.reset()       # the new period from now, not after the old one's end
         if rates and self._on_rate_change is not None:
             self._on_rate_change()          # a bus regroups its drives' timers
 
