@@ -520,7 +520,7 @@ def test_publish_tf(make_rig, ros_context):
 def test_bad_parameters_are_refused(ros_context):
     from vfd_ros2.ros.diff_drive_node import DiffDriveNode
     for name, value in (('wheel_radius', 0.0), ('cmd_vel_timeout', -1.0),
-                        ('max_linear_velocity', -1.0), ('publish_rate', 0.0)):
+                        ('max_linear_velocity', -1.0), ('publish_rate', 1.0)):
         # Out of the declared range: rclpy refuses the override (a ParameterException,
         # reported in one line by run_node); what the range cannot express: ParameterError.
         with pytest.raises((ParameterError, ParameterException), match=name):
@@ -741,3 +741,75 @@ def test_odometry_counts_the_whole_of_a_late_cycle(make_rig):
                ).nanoseconds * 1e-9
     travelled = last.pose.pose.position.x - first.pose.pose.position.x
     assert travelled == pytest.approx(0.3 * elapsed, rel=0.1), (travelled, elapsed)
+
+
+def test_a_shared_joint_states_topic_is_read_by_joint_name(make_rig):
+    """One JointState for both wheels (a bus's joint_states_topic): each wheel by its name."""
+    names = {'left_wheel_joint_states_topic': 'joints', 'right_wheel_joint_states_topic': 'joints'}
+    rig = make_rig(**names, left_wheel_joint_name='l', right_wheel_joint_name='r')
+    unnamed = make_rig(**names)
+    publishers = [r.tester.create_publisher(JointState, f'{r.namespace}/joints', 10)
+                  for r in (rig, unnamed)]
+    positions = [(0.0, 0.0)]        # (left, right) rad
+    stop = threading.Event()
+
+    def feed() -> None:
+        while not stop.is_set():
+            left, right = positions[0]
+            for publisher in publishers:       # the right wheel first: taken by name
+                publisher.publish(JointState(name=['r', 'l'], position=[right, left],
+                                             velocity=[0.0, 0.0]))
+            time.sleep(0.02)
+    thread = threading.Thread(target=feed, daemon=True)
+    thread.start()
+    try:
+        wait_for(lambda: rig.node.odometry_source == 'position', 3.0, 'position feedback')
+        positions[0] = (-2.5, 2.5)      # 1 rad counter-clockwise on the spot
+        wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.orientation.z ==
+                 pytest.approx(math.sin(0.5)), 3.0, 'yaw 1 rad')
+        assert rig.odom[-1].pose.pose.position.x == pytest.approx(0.0, abs=1e-9)
+        # Without names a message of two joints is refused: either could be either wheel.
+        assert unnamed.node.left_position.updates == 0
+        assert unnamed.node.odometry_source != 'position'
+    finally:
+        stop.set()
+        thread.join(1.0)
+
+
+def test_a_clock_that_jumps_back_ends_the_last_command(make_rig):
+    """Simulated time restarting (a simulator reset): the last cmd_vel is not fresh for it."""
+    from rosgraph_msgs.msg import Clock
+    rig = make_rig(use_sim_time=True, use_stamped_vel=False)
+    clock_pub = rig.tester.create_publisher(Clock, '/clock', 10)
+    now = [100.0]
+    stop = threading.Event()
+
+    def tick() -> None:
+        while not stop.is_set():
+            now[0] += 0.02
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(round(now[0] * 1e9), 1_000_000_000)
+            clock_pub.publish(msg)
+            time.sleep(0.02)
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        rig.twist = (0.2, 0.0)
+        rig.wait_commands(2.0, 2.0, what='driving')
+        rig.twist = None
+        now[0] = 1.0                    # the simulation restarts
+        rig.wait_commands(0.0, 0.0, what='stopped after the clock jumped back')
+    finally:
+        stop.set()
+        thread.join(1.0)
+
+
+def test_a_wheel_that_stopped_following_while_idle_is_told_when_motion_is_asked(
+        make_rig, capfd):
+    rig = make_rig()
+    rig.right.fault = True          # while the robot stands
+    wait_for(lambda: rig.node.halted, 3.0, 'halted')
+    rig.twist = (0.3, 0.0)
+    wait_for(lambda: 'stopping both wheels: right wheel drive has a fault' in
+             ''.join(capfd.readouterr()), 3.0, 'the halt told')
+    assert set(rig.left.commands[-10:]) == {0.0}

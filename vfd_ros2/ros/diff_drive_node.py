@@ -7,6 +7,7 @@ Topics (relative names resolve in the node's namespace):
   <left/right>_wheel_command_topic   std_msgs/Float64   out at publish_rate: rad/s at the wheel
   <left/right>_wheel_status_topic    vfd_ros2/DriveStatus  in: measured_velocity, online
   <left/right>_wheel_joint_states_topic  sensor_msgs/JointState  in: the wheel's position
+                           (its joint named by <left/right>_wheel_joint_name, or the only one)
   odom                     nav_msgs/Odometry       out at publish_rate: header.frame_id =
                                                    odom_frame, child_frame_id = base_frame
   /tf                      tf2_msgs/TFMessage      out with publish_tf (needs tf2_msgs)
@@ -88,6 +89,10 @@ PARAMETERS: tuple[tuple[str, Any, str, float | None, float | None, bool], ...] =
     ('right_wheel_joint_states_topic', 'right_wheel/joint_states',
      'sensor_msgs/JointState in: right wheel position (rad), for position_feedback', None,
      None, False),
+    ('left_wheel_joint_name', '', "the left wheel's joint in its JointState ('' = the "
+     "message's only joint: a message with several is refused)", None, None, False),
+    ('right_wheel_joint_name', '', "the right wheel's joint in its JointState ('' = the "
+     "message's only joint: a message with several is refused)", None, None, False),
     ('position_feedback', True, 'odometry from the wheel positions (JointState) while both '
      'report them; false: always integrate the measured speeds', None, None, False),
     ('use_stamped_vel', True, "cmd_vel is geometry_msgs/TwistStamped (as Jazzy's "
@@ -109,7 +114,9 @@ PARAMETERS: tuple[tuple[str, Any, str, float | None, float | None, bool], ...] =
      'rejected', 0.01, 60.0, True),
     ('wheel_status_timeout', 0.5, 's after the last wheel status before odometry holds',
      0.01, 60.0, True),
-    ('publish_rate', 50.0, 'Hz of the wheel commands and odom', 0.5, 1000.0, True),
+    ('publish_rate', 50.0, "Hz of the wheel commands and odom; faster than 1 / the drive "
+     "nodes' command_timeout (their watchdogs stop the wheels between slower commands)",
+     5.0, 1000.0, True),
     ('odom_frame', 'odom', 'header.frame_id of odom (REP 105)', None, None, False),
     ('base_frame', 'base_link', 'child_frame_id of odom (REP 105)', None, None, False),
     ('publish_tf', False, 'also publish odom_frame -> base_frame on /tf (needs tf2_msgs)',
@@ -149,6 +156,8 @@ class WheelInput:
         age = (now - self.received).nanoseconds * 1e-9
         if age > timeout_s:
             return f'{self.name} wheel status is {age:.2f} s old'
+        if age < 0.0:
+            return f'{self.name} wheel status is from before the clock jumped back'
         if not self.online:
             return f'{self.name} wheel drive is offline'
         return ''
@@ -175,23 +184,40 @@ class WheelInput:
 class WheelPosition:
     """The latest position of one wheel from its JointState: when measured, when arrived."""
 
-    def __init__(self, sign: float) -> None:
+    def __init__(self, sign: float, joint: str = '') -> None:
         self.sign = sign
+        self.joint = joint      # its name in the JointState ('' = the message's only joint)
         self.position_rad = math.nan
         self.velocity_rad_s = math.nan     # at the same moment (NaN: not given)
         self.measured: Time | None = None  # its header stamp (None: zero, not known)
         self.received: Time | None = None
         self.updates = 0        # positions received so far
 
-    def update(self, msg: JointState, now: Time) -> None:
-        if msg.position:
-            self.position_rad = self.sign * float(msg.position[0])
-            self.velocity_rad_s = self.sign * float(msg.velocity[0]) if msg.velocity \
-                else math.nan
+    def update(self, msg: JointState, now: Time) -> str:
+        """Take this wheel's position from ``msg``; return why it was refused ('' if not).
+
+        A message naming several joints (a shared joint_states topic) is used only
+        with ``joint`` set: another joint's position would be taken as this wheel's.
+        A message without this wheel's joint is another's (ignored, not refused).
+        """
+        if self.joint:
+            if self.joint not in msg.name:
+                return ''
+            index = list(msg.name).index(self.joint)
+        elif len(msg.name) > 1 or len(msg.position) > 1:
+            return (f'a JointState of {len(msg.name)} joints ({", ".join(msg.name[:4])}): '
+                    'set the wheel_joint_name parameters to pick the wheels')
+        else:
+            index = 0
+        if len(msg.position) > index:
+            self.position_rad = self.sign * float(msg.position[index])
+            self.velocity_rad_s = self.sign * float(msg.velocity[index]) \
+                if len(msg.velocity) > index else math.nan
             stamp = Time.from_msg(msg.header.stamp, clock_type=now.clock_type)
             self.measured = stamp if stamp.nanoseconds else None
             self.received = now
             self.updates += 1
+        return ''
 
     def at(self, moment: Time, limit_s: float) -> float:
         """Return the position at ``moment``: carried on at the measured speed.
@@ -206,7 +232,7 @@ class WheelPosition:
 
     def usable(self, now: Time, timeout_s: float) -> bool:
         return self.received is not None and math.isfinite(self.position_rad) and \
-            (now - self.received).nanoseconds * 1e-9 <= timeout_s
+            0.0 <= (now - self.received).nanoseconds * 1e-9 <= timeout_s
 
 
 class DiffDriveNode(Node):
@@ -237,8 +263,9 @@ class DiffDriveNode(Node):
         self.left = WheelInput('left', bool(values['invert_left']))
         self.right = WheelInput('right', bool(values['invert_right']))
         self.position_feedback = bool(values['position_feedback'])
-        self.left_position = WheelPosition(self.left.sign)
-        self.right_position = WheelPosition(self.right.sign)
+        self.left_position = WheelPosition(self.left.sign, str(values['left_wheel_joint_name']))
+        self.right_position = WheelPosition(self.right.sign,
+                                            str(values['right_wheel_joint_name']))
         # positions at the last update, and how many each wheel had received by then
         self._baseline: tuple[float, float] | None = None
         self._baseline_updates = (0, 0)
@@ -251,6 +278,7 @@ class DiffDriveNode(Node):
         self.last_command: Time | None = None
         self.timed_out = True
         self.halted = ''            # why both wheels are held at zero ('' while they follow)
+        self._halt_told = ''        # the cause last logged
         self._last_tick: Time | None = None
 
         self.left_pub = self.create_publisher(Float64, values['left_wheel_command_topic'], 10)
@@ -299,6 +327,7 @@ class DiffDriveNode(Node):
         if 'publish_rate' in changes:
             self.period_s = 1.0 / float(values['publish_rate'])
             self._tick_timer.timer_period_ns = round(self.period_s * 1e9)
+            self._tick_timer.reset()    # the new period from now, not after the old one's end
 
     def _setup_tf(self) -> None:
         try:
@@ -364,7 +393,11 @@ class DiffDriveNode(Node):
 
     def _on_joint(self, wheel: WheelPosition, msg: JointState) -> None:
         try:
-            wheel.update(msg, self.get_clock().now())
+            refused = wheel.update(msg, self.get_clock().now())
+            if refused:
+                side = 'left' if wheel is self.left_position else 'right'
+                self.get_logger().warning(f'{side} wheel joint state refused: {refused}',
+                                          throttle_duration_sec=5.0)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'joint state failed: {exc}', throttle_duration_sec=1.0)
 
@@ -423,8 +456,10 @@ class DiffDriveNode(Node):
         return dt if dt > 0.0 else 0.0
 
     def _command(self, now: Time, dt: float) -> None:
+        # (a command from before the clock jumped back, as simulated time does when a
+        # simulation restarts, is no fresher for it: its age is not known)
         fresh = self.last_command is not None and \
-            (now - self.last_command).nanoseconds * 1e-9 <= self.cmd_vel_timeout_s
+            0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= self.cmd_vel_timeout_s
         if not fresh and not self.timed_out and self.last_command is not None:
             self.get_logger().warning(
                 f'no valid cmd_vel for {self.cmd_vel_timeout_s} s: stopping the wheels')
@@ -434,9 +469,15 @@ class DiffDriveNode(Node):
         # (within the acceleration limits) until both follow again.
         halt = self.left.not_following(now, self.wheel_status_timeout_s) or \
             self.right.not_following(now, self.wheel_status_timeout_s)
-        if halt and halt != self.halted and fresh and any(self.target):
+        if halt and halt != self._halt_told and fresh and any(self.target):
+            # (told when a command asks for motion: a wheel halted while the robot
+            # stands is told once something is asked of it)
             self.get_logger().warning(f'stopping both wheels: {halt}')
+            self._halt_told = halt
         self.halted = halt
+        if not halt:
+            self._halt_told = ''
+
         target = self.target if fresh and not halt else (0.0, 0.0)
         linear, angular = self.limiter.step(target[0], target[1], dt)
         left, right = self.kinematics.wheel_speeds(linear, angular)
