@@ -23,6 +23,7 @@ from vfd_ros2.control.bus import Bus, parse_bus_config
 from vfd_ros2.control.controller import STATUS_NOT_READ
 from vfd_ros2.control.factory import build_controller
 from vfd_ros2.control.state import RunState
+from vfd_ros2.drives import modbus as modbus_drive
 from vfd_ros2.drives.base import HOST_LOSS_JITTER, size_comm_timeout
 from vfd_ros2.errors import CommTimeout, ParameterError
 from vfd_ros2.msg import DriveStatus
@@ -446,6 +447,26 @@ def test_an_unreadable_fault_register_blocks_motion(make_harness):
     assert not h.sim.run_requested
     reply = h.trigger('enable')
     assert not reply.success and 'A01.00' in reply.message
+
+
+def test_a_refusal_that_passes_stops_blocking_the_drive(make_harness, monkeypatch):
+    """Exception replies to the fault register for a while (a frame error, a device failure).
+
+    It was refused until the next connect: the drive stood blocked, ~/enable refused,
+    while every reply was good again. It is asked again every REFUSAL_RETRY, shown
+    refused meanwhile (never as a value, never flickering in ~/status).
+    """
+    monkeypatch.setattr(modbus_drive, 'REFUSAL_RETRY', 0.5)
+    h = make_harness(refused=('A01.00',), node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.state == 'blocked', 5.0, 'blocked')
+    first = len(h.statuses)
+    time.sleep(1.6)                 # three retries, each refused again
+    assert all(any('A01.00' in u for u in s.unavailable) for s in h.statuses[first:])
+    assert not h.sim.run_requested
+    h.sim.refuse([])                # it passed
+    h.wait_status(lambda s: s.running and not s.unavailable, 5.0, 'running again')
+    assert h.status.reconnects == 0
 
 
 # --- 5. bad values never reach the control loop ------------------------------------------

@@ -46,6 +46,11 @@ from .base import (
 
 T = TypeVar('T')
 
+#: s after a status register was refused before it is asked again: a refusal that lasts
+#: costs an exception reply (and a cycle of single reads) this often; one that passed
+#: (a burst of frame errors) stops being reported, and blocking a drive, within it.
+REFUSAL_RETRY = 5.0
+
 
 class ModbusDrive(DriveOnLink):
     """One drive on a register transport, driven through its profile."""
@@ -99,6 +104,12 @@ class ModbusDrive(DriveOnLink):
             for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
+        # Refusals asked again (REFUSAL_RETRY after the first): shown as before until
+        # the register is read, or refused again. A burst of exception replies (a
+        # frame error, a device failure) would otherwise keep a value unavailable,
+        # and a drive whose run state it was blocked, until the next connect.
+        self._retrying: dict[int, str] = {}
+        self._retry_refused_at = math.inf
         self._read_at: dict[int, float] = {}    # a shown-only block's start -> when read
         self._plan_reads()
         self._unsigned_roles = {signal.role: parameter.type.bounds[0] == 0 and not signal.bits
@@ -184,6 +195,8 @@ class ModbusDrive(DriveOnLink):
         self._words.clear()
         self._read_at.clear()
         self.asserted_command = None
+        self._retrying.clear()
+        self._retry_refused_at = math.inf
         if self._refused:
             self._refused.clear()      # it may be another drive (or firmware) now
             self._plan_reads()
@@ -456,7 +469,12 @@ class ModbusDrive(DriveOnLink):
         goes on the wire ahead of the remaining status reads.
         """
         known, read_at, display_period = self._words, self._read_at, self.display_period
-        now = time.monotonic() if display_period else 0.0
+        now = time.monotonic() if display_period or self._refused else 0.0
+        if self._refused and now >= self._retry_refused_at:
+            self._retrying.update(self._refused)
+            self._refused.clear()
+            self._retry_refused_at = math.inf
+            self._plan_reads()
         for block, every, shown_only in self._schedule:   # (_refuse plans anew: a new list)
             if block.start in known and (cycle % every or shown_only and display_period and
                                          now < read_at.get(block.start, -math.inf)
@@ -471,8 +489,13 @@ class ModbusDrive(DriveOnLink):
                 continue
             known.update(zip(range(block.start, block.start + len(words)), words))
             read_at[block.start] = now
+            if self._retrying:
+                for address in range(block.start, block.start + len(words)):
+                    self._retrying.pop(address, None)
         reading = Reading()
         refusals, values = self._refused, reading.values
+        if self._retrying:
+            refusals = {**self._retrying, **refusals}
         for role, code, span, first, sign, bits, scale, parameter in self._decoding:
             if refusals:
                 refused = next((refusals[a] for a in span if a in refusals), None)
@@ -521,7 +544,10 @@ class ModbusDrive(DriveOnLink):
             return
         for address in range(block.start, block.start + block.count):
             self._refused[address] = exc.text
+            self._retrying.pop(address, None)
             self._words.pop(address, None)
+        self._retry_refused_at = min(self._retry_refused_at,
+                                     time.monotonic() + REFUSAL_RETRY)
         self._plan_reads()
 
     def _measured_velocity(self, values: Mapping[str, float], reverse: bool) -> float:
