@@ -375,15 +375,15 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         sim.unplug(1)                                     # the cable into the second slave
         wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
                  'right offline')
-        assert left.state.online and left.state.running   # the left wheel keeps going
-        assert bus.bus.link_stats().bad_frames > 0        # the segment saw WKC drops
+        assert left.state.online and left.state.running, left.state   # the left keeps going
+        assert bus.bus.link_stats().bad_frames > 0, bus.bus.link_stats()  # saw WKC drops
         sim.replug(1)
         wait_for(lambda: (left.command_velocity(1.0), right.state.online and
                           right.state.reconnects >= 1)[1], 10.0, 'right back')
         # right has had no fresh command since it came back: it stays stopped
-        assert not right.state.running and right.state.run_state != 6
+        assert not right.state.running and right.state.run_state != 6, right.state
         assert sim.drive(1)['velocity_rpm'] == 0.0 or sim.drive(1)['state'] != \
-            'OPERATION_ENABLED'
+            'OPERATION_ENABLED', sim.drive(1)
         wait_for(lambda: both_at(1.0), 8.0, 'both moving again on fresh commands')
         # powered off and on: the slave comes back with the ESC's default watchdog and its
         # default PDO mapping and mode; the transport writes its set-up and watchdog again
@@ -393,11 +393,11 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
                  'right offline after the power cycle')
         wait_for(lambda: (left.command_velocity(1.0), right.state.online)[1], 10.0,
                  'right back after the power cycle')
-        assert sim.esc(1)['watchdog_s'] == pytest.approx(0.3, abs=0.001)
-        assert right.state.protection.timeout == pytest.approx(0.3)
-        assert sim.drive(1)['mode'] == 9                  # csv written again at PRE-OP
+        assert sim.esc(1)['watchdog_s'] == pytest.approx(0.3, abs=0.001), sim.esc(1)
+        assert right.state.protection.timeout == pytest.approx(0.3), right.state.protection
+        assert sim.drive(1)['mode'] == 9, sim.drive(1)    # csv written again at PRE-OP
         # by the supervisor, in place: the left wheel never went offline meanwhile
-        assert left.state.online and left.state.reconnects == left_reconnects
+        assert left.state.online and left.state.reconnects == left_reconnects, left.state
         wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
 
 
