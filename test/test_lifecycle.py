@@ -8,6 +8,7 @@ closes.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -210,6 +211,34 @@ def test_autostart_configures_and_activates(ros_context, tmp_path):
                  6.0, 'moving after autostart')
     finally:
         node.destroy_node()
+        line.stop()
+
+
+def test_ctrl_c_during_autostart_stops_the_loop_before_the_node_goes(ros_context, tmp_path,
+                                                                      monkeypatch):
+    """KeyboardInterrupt out of activate's wait: the node is destroyed, its loop ended.
+
+    It left make_drive_node before run_node had the node: nothing destroyed it, and
+    the control loop ran on (no stop written) until the process died.
+    """
+    import vfd_ros2.ros.managed as managed
+
+    def interrupted(*_args, **_kwargs):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(managed, 'results', interrupted)
+    sim = SimulatedDrive(load_profile('boneng_am'), 1)
+    port = str(tmp_path / 'line')
+    line = SimulatedRtuLine([sim], port).start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            make_drive_node(['drive_node', '--managed', '--autostart'], namespace='/ctrlc',
+                            context=ros_context, parameter_overrides=[
+                                Parameter('transport.port', value=port),
+                                Parameter('auto_enable', value=True)])
+        assert not [t.name for t in threading.enumerate()
+                    if t.name.startswith('drive ') and port in t.name]
+        assert sim.requests > 0 and not sim.run_requested
+    finally:
         line.stop()
 
 

@@ -457,21 +457,29 @@ def make_drive_node(args: list[str] | None = None, **kwargs: Any) -> DriveNode:
 
 
 def autostart(node: LifecycleNode) -> None:
-    """Configure and activate, as a lifecycle manager with autostart would; log a failure."""
-    for transition in (node.trigger_configure, node.trigger_activate):
-        try:
-            result = transition()
-        except Exception:
-            if node.context.ok():
-                raise
-            # Ctrl-C / SIGTERM during the transition: rclpy cannot tell its end any more
-            # (the context is shut down). The node goes back to run_node, which stops
-            # the drive as it destroys the node.
-            return
-        if result != TransitionCallbackReturn.SUCCESS:
-            node.get_logger().error('autostart stopped: the node stays in its current state '
-                                    'for a lifecycle manager or operator to retry')
-            return
+    """Configure and activate, as a lifecycle manager with autostart would; log a failure.
+
+    Whatever ends it early (Ctrl-C's KeyboardInterrupt out of a transition's wait, an
+    error) destroys the node first, so its drive is stopped before the port closes:
+    the caller never got the node to destroy.
+    """
+    try:
+        for transition in (node.trigger_configure, node.trigger_activate):
+            try:
+                result = transition()
+            except Exception:
+                if node.context.ok():
+                    raise
+                # SIGTERM during the transition: rclpy cannot tell its end any more (the
+                # context is shut down). run_node stops the drive as it destroys the node.
+                return
+            if result != TransitionCallbackReturn.SUCCESS:
+                node.get_logger().error('autostart stopped: the node stays in its current '
+                                        'state for a lifecycle manager or operator to retry')
+                return
+    except BaseException:
+        node.destroy_node()
+        raise
 
 
 def main(args: list[str] | None = None) -> int:
