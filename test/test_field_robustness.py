@@ -453,15 +453,15 @@ def test_a_refusal_that_passes_stops_blocking_the_drive(make_harness, monkeypatc
     """Exception replies to the fault register for a while (a frame error, a device failure).
 
     It was refused until the next connect: the drive stood blocked, ~/enable refused,
-    while every reply was good again. It is asked again every REFUSAL_RETRY, shown
-    refused meanwhile (never as a value, never flickering in ~/status).
+    while every reply was good again. It is asked again, alone, every REFUSAL_RETRY,
+    shown refused meanwhile (never as a value, never flickering in ~/status).
     """
     monkeypatch.setattr(modbus_drive, 'REFUSAL_RETRY', 0.5)
     h = make_harness(refused=('A01.00',), node_parameters={'auto_enable': True})
     h.stream(1.0)
     h.wait_status(lambda s: s.state == 'blocked', 5.0, 'blocked')
-    first = len(h.statuses)
-    time.sleep(1.6)                 # three retries, each refused again
+    first, exceptions = len(h.statuses), h.status.exceptions
+    wait_for(lambda: h.status.exceptions >= exceptions + 3, 5.0, 'three retries refused')
     assert all(any('A01.00' in u for u in s.unavailable) for s in h.statuses[first:])
     assert not h.sim.run_requested
     h.sim.refuse([])                # it passed

@@ -104,11 +104,10 @@ class ModbusDrive(DriveOnLink):
             for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
-        # Refusals asked again (REFUSAL_RETRY after the first): shown as before until
-        # the register is read, or refused again. A burst of exception replies (a
-        # frame error, a device failure) would otherwise keep a value unavailable,
-        # and a drive whose run state it was blocked, until the next connect.
-        self._retrying: dict[int, str] = {}
+        # When the refused values are asked again, each alone (_retry_refusals): a
+        # burst of exception replies (a frame error, a device failure) would otherwise
+        # keep a value unavailable, and a drive whose run state it was blocked, until
+        # the next connect.
         self._retry_refused_at = math.inf
         self._read_at: dict[int, float] = {}    # a shown-only block's start -> when read
         self._plan_reads()
@@ -195,7 +194,6 @@ class ModbusDrive(DriveOnLink):
         self._words.clear()
         self._read_at.clear()
         self.asserted_command = None
-        self._retrying.clear()
         self._retry_refused_at = math.inf
         if self._refused:
             self._refused.clear()      # it may be another drive (or firmware) now
@@ -471,10 +469,7 @@ class ModbusDrive(DriveOnLink):
         known, read_at, display_period = self._words, self._read_at, self.display_period
         now = time.monotonic() if display_period or self._refused else 0.0
         if self._refused and now >= self._retry_refused_at:
-            self._retrying.update(self._refused)
-            self._refused.clear()
-            self._retry_refused_at = math.inf
-            self._plan_reads()
+            self._retry_refusals(known, preempt)
         for block, every, shown_only in self._schedule:   # (_refuse plans anew: a new list)
             if block.start in known and (cycle % every or shown_only and display_period and
                                          now < read_at.get(block.start, -math.inf)
@@ -489,13 +484,8 @@ class ModbusDrive(DriveOnLink):
                 continue
             known.update(zip(range(block.start, block.start + len(words)), words))
             read_at[block.start] = now
-            if self._retrying:
-                for address in range(block.start, block.start + len(words)):
-                    self._retrying.pop(address, None)
         reading = Reading()
         refusals, values = self._refused, reading.values
-        if self._retrying:
-            refusals = {**self._retrying, **refusals}
         for role, code, span, first, sign, bits, scale, parameter in self._decoding:
             if refusals:
                 refused = next((refusals[a] for a in span if a in refusals), None)
@@ -533,6 +523,38 @@ class ModbusDrive(DriveOnLink):
             values, reading.flags.get('reverse', False))
         return reading
 
+    def _retry_refusals(self, known: dict[int, int],
+                        preempt: Callable[[], None] | None) -> None:
+        """Ask each refused value again, alone; one read again joins the planned reads.
+
+        Alone, so that a refusal that lasts (a firmware without the register) costs
+        one exception reply per REFUSAL_RETRY and never the values read with it.
+        """
+        self._retry_refused_at = math.inf
+        spans = [(p.address, p.register_count) for _, p in self._signals]
+        spans += [(p.address, p.register_count) for p in self._status_words]
+        answered = False
+        for address, count in dict.fromkeys(spans):
+            if not self._refuses(address, count):
+                continue
+            if preempt is not None:
+                preempt()
+            try:
+                words = self._read(address, count)
+            except ProtocolException as exc:
+                for register in range(address, address + count):
+                    self._refused[register] = exc.text
+                self._retry_refused_at = time.monotonic() + REFUSAL_RETRY
+                continue
+            for register in range(address, address + count):
+                self._refused.pop(register, None)
+            known.update(zip(range(address, address + len(words)), words))
+            answered = True
+        if answered:
+            if not any(self._refuses(address, count) for address, count in spans):
+                self._refused.clear()       # (a refused block's undocumented gaps too)
+            self._plan_reads()
+
     def _refuse(self, block: ReadBlock, exc: ProtocolException) -> None:
         """Handle a refused status read: read its values one by one, drop the refused."""
         spans = [(p.address, p.register_count) for _, p in self._signals
@@ -544,7 +566,6 @@ class ModbusDrive(DriveOnLink):
             return
         for address in range(block.start, block.start + block.count):
             self._refused[address] = exc.text
-            self._retrying.pop(address, None)
             self._words.pop(address, None)
         self._retry_refused_at = min(self._retry_refused_at,
                                      time.monotonic() + REFUSAL_RETRY)
