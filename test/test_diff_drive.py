@@ -771,6 +771,12 @@ def test_a_shared_joint_states_topic_is_read_by_joint_name(make_rig):
         # Without names a message of two joints is refused: either could be either wheel.
         assert unnamed.node.left_position.updates == 0
         assert unnamed.node.odometry_source != 'position'
+        assert 'set the wheel_joint_name' in unnamed.node.left_position.update(
+            JointState(name=['r', 'l'], position=[0.0, 0.0]), unnamed.node.get_clock().now())
+        # A name no message carries is told (a misspelt name), until one does.
+        misspelt = make_rig(**names, left_wheel_joint_name='left', right_wheel_joint_name='r')
+        assert "no 'left' in it" in misspelt.node.left_position.update(
+            JointState(name=['r', 'l'], position=[0.0, 0.0]), misspelt.node.get_clock().now())
     finally:
         stop.set()
         thread.join(1.0)

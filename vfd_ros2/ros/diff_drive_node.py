@@ -202,7 +202,9 @@ class WheelPosition:
         """
         if self.joint:
             if self.joint not in msg.name:
-                return ''
+                # another joint's message, unless none has named it (a misspelt name)
+                return '' if self.updates else \
+                    f'no {self.joint!r} in it (it names {", ".join(msg.name[:4]) or "none"})'
             index = list(msg.name).index(self.joint)
         elif len(msg.name) > 1 or len(msg.position) > 1:
             return (f'a JointState of {len(msg.name)} joints ({", ".join(msg.name[:4])}): '

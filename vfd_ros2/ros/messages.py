@@ -76,7 +76,8 @@ class StatusMessage:
         if shown is None:
             changed: Iterable[str] = _SHOWN_FROM
         else:
-            # (``is`` first: most fields are the very objects of the last snapshot)
+            # (``is`` first: most fields are the very objects of the last snapshot; the
+            # containers a poll builds anew, the measured values say, compare by value)
             changed = [name for name, new, old in zip(DriveState._fields, state, shown)
                        if new is not old and new != old and name in _SHOWN_FROM]
         for name in changed:
