@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 
 from harness import wait_for
 from vfd_ros2.ros.executable import spin_in_background
-from vfd_ros2.sim.node import LIVE_PARAMETERS, SimDriveNode
+from vfd_ros2.sim.node import SimDriveNode
 from vfd_ros2.srv import InjectFault
 from vfd_ros2.transports.modbus import ModbusRtuTransport, ModbusTcpTransport
 
@@ -128,7 +128,9 @@ def test_only_what_the_simulator_applies_at_run_time_is_described_writable(sim_n
     node, _ = sim_node(port=str(tmp_path / 'line'))
     names = node.list_parameters([], 0).names
     writable = {name for name in names if not node.describe_parameter(name).read_only}
-    assert writable == set(LIVE_PARAMETERS)
+    assert writable == set(node.live_parameters) == {
+        'silent_unit_ids', 'refused', 'corrupt_rate', 'late_rate', 'late_delay', 'late_deaf',
+        'wrong_echo_rate', 'trailing_rate'}
     assert 'start-up' in node.describe_parameter('use_sim_time').description
     for name in set(names) - writable:
         assert not node.set_parameters([Parameter(name, value=True)])[0].successful, name

@@ -62,14 +62,11 @@ def parse_initial_values(items: list[str]) -> dict[str, float]:
     return values
 
 
-#: what ``SimDriveNode._apply`` changes at run time (the others are set at start-up)
-LIVE_PARAMETERS = ('silent_unit_ids', 'refused', 'corrupt_rate', 'late_rate', 'late_delay',
-                   'late_deaf', 'wrong_echo_rate', 'trailing_rate')
-
-
 class SimDriveNode(Node):
     def __init__(self, node_name: str = 'sim_drive', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
+        #: the parameters ``_apply`` changes at run time (the others: at start-up only)
+        self.live_parameters: list[str] = []
         declare = self._declare
         profile = load_profile(declare('profile', 'boneng_am', 'profile of the simulated drives'))
         transport = declare('transport', 'modbus_rtu', 'line type: modbus_rtu')
@@ -104,11 +101,9 @@ class SimDriveNode(Node):
         else:
             self.line, where = self._modbus(profile, transport, port, unit_ids, initial,
                                             baudrate, wire_time, corrupt, tcp_port)
-        describe_read_only_except(self, LIVE_PARAMETERS)
+        describe_read_only_except(self, self.live_parameters)
         self.add_on_set_parameters_callback(self._on_parameters)
-        self._apply([self.get_parameter(name) for name in (
-            'refused', 'late_rate', 'late_delay', 'late_deaf', 'wrong_echo_rate',
-            'trailing_rate')])
+        self._apply([self.get_parameter(name) for name in self.live_parameters])
         self.create_service(InjectFault, '~/inject_fault', self._on_inject_fault)
         self.get_logger().info(
             f'simulating {len(self.drives)} {profile.name} drive(s) {unit_ids} on {where}')
@@ -143,6 +138,8 @@ class SimDriveNode(Node):
                  minimum: float | None = None, maximum: float | None = None,
                  live: bool = False) -> Any:
         # Only what _apply handles is live; everything else is read-only once running.
+        if live:
+            self.live_parameters.append(name)
         return self.declare_parameter(
             name, default, descriptor(description, default, minimum, maximum, live)).value
 
@@ -150,6 +147,7 @@ class SimDriveNode(Node):
         # Dynamically typed: "[]" on the command line has no element type (ros2cli sends
         # a bool array, YAML files may give a string or byte array), and must clear the
         # list as well as "[2]" sets it.
+        self.live_parameters.append(name)
         self.declare_parameter(name, [], ParameterDescriptor(
             description=description + LIVE_NOTE, dynamic_typing=True))
 
