@@ -746,19 +746,18 @@ def test_odometry_counts_the_whole_of_a_late_cycle(make_rig):
 def test_a_shared_joint_states_topic_is_read_by_joint_name(make_rig):
     """One JointState for both wheels (a bus's joint_states_topic): each wheel by its name."""
     names = {'left_wheel_joint_states_topic': 'joints', 'right_wheel_joint_states_topic': 'joints'}
+    with pytest.raises(ParameterError, match='set left_wheel_joint_name'):
+        make_rig(**names)           # each wheel would take the other's positions as its own
     rig = make_rig(**names, left_wheel_joint_name='l', right_wheel_joint_name='r')
-    unnamed = make_rig(**names)
-    publishers = [r.tester.create_publisher(JointState, f'{r.namespace}/joints', 10)
-                  for r in (rig, unnamed)]
+    publisher = rig.tester.create_publisher(JointState, f'{rig.namespace}/joints', 10)
     positions = [(0.0, 0.0)]        # (left, right) rad
     stop = threading.Event()
 
     def feed() -> None:
         while not stop.is_set():
-            left, right = positions[0]
-            for publisher in publishers:       # the right wheel first: taken by name
-                publisher.publish(JointState(name=['r', 'l'], position=[right, left],
-                                             velocity=[0.0, 0.0]))
+            left, right = positions[0]     # the right wheel first: taken by name
+            publisher.publish(JointState(name=['r', 'l'], position=[right, left],
+                                         velocity=[0.0, 0.0]))
             time.sleep(0.02)
     thread = threading.Thread(target=feed, daemon=True)
     thread.start()
@@ -768,18 +767,32 @@ def test_a_shared_joint_states_topic_is_read_by_joint_name(make_rig):
         wait_for(lambda: rig.odom and rig.odom[-1].pose.pose.orientation.z ==
                  pytest.approx(math.sin(0.5)), 3.0, 'yaw 1 rad')
         assert rig.odom[-1].pose.pose.position.x == pytest.approx(0.0, abs=1e-9)
-        # Without names a message of two joints is refused: either could be either wheel.
-        assert unnamed.node.left_position.updates == 0
-        assert unnamed.node.odometry_source != 'position'
-        assert 'set the wheel_joint_name' in unnamed.node.left_position.update(
-            JointState(name=['r', 'l'], position=[0.0, 0.0]), unnamed.node.get_clock().now())
-        # A name no message carries is told (a misspelt name), until one does.
-        misspelt = make_rig(**names, left_wheel_joint_name='left', right_wheel_joint_name='r')
-        assert "no 'left' in it" in misspelt.node.left_position.update(
-            JointState(name=['r', 'l'], position=[0.0, 0.0]), misspelt.node.get_clock().now())
     finally:
         stop.set()
         thread.join(1.0)
+
+
+def test_a_wheel_takes_only_its_own_joint():
+    from vfd_ros2.ros.diff_drive_node import MISSES_TOLD, WheelPosition
+    now = Time(nanoseconds=1)
+    # Unnamed: a message of two joints is refused (either could be either wheel), and
+    # of single-joint messages only the joint taken first.
+    unnamed = WheelPosition(1.0)
+    assert 'set the wheel_joint_name' in unnamed.update(
+        JointState(name=['r', 'l'], position=[1.0, 2.0]), now)
+    assert unnamed.update(JointState(name=['l'], position=[2.0]), now) == ''
+    assert 'several joints on one topic' in unnamed.update(
+        JointState(name=['r'], position=[1.0]), now)
+    assert unnamed.position_rad == 2.0 and unnamed.updates == 1
+    # Named: others' messages are ignored, until so many came without it that the name
+    # looks misspelt.
+    named = WheelPosition(1.0, 'left')
+    told = [named.update(JointState(name=['l'], position=[0.0]), now)
+            for _ in range(MISSES_TOLD)]
+    assert told[:-1] == [''] * (MISSES_TOLD - 1) and "no 'left' in it" in told[-1]
+    assert named.update(JointState(name=['r', 'left'], position=[1.0, 3.0]), now) == ''
+    assert named.position_rad == 3.0
+    assert named.update(JointState(name=['l'], position=[0.0]), now) == ''
 
 
 def test_a_clock_that_jumps_back_ends_the_last_command(make_rig):
@@ -819,3 +832,15 @@ def test_a_wheel_that_stopped_following_while_idle_is_told_when_motion_is_asked(
     wait_for(lambda: 'stopping both wheels: right wheel drive has a fault' in
              ''.join(capfd.readouterr()), 3.0, 'the halt told')
     assert set(rig.left.commands[-10:]) == {0.0}
+
+
+def test_a_halt_is_told_once_per_cause_not_once_per_cycle(make_rig, capfd):
+    rig = make_rig()
+    rig.twist = (0.3, 0.0)
+    rig.wait_commands(3.0, 3.0, what='driving')
+    capfd.readouterr()
+    rig.right.publishing = False    # its status grows older every cycle
+    rig.wait_commands(0.0, 0.0, what='both stopped')
+    time.sleep(1.0)                 # 50 cycles at publish_rate
+    told = ''.join(capfd.readouterr()).count('stopping both wheels')
+    assert told == 1, told

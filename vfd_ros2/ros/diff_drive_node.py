@@ -65,7 +65,7 @@ from ..control.diff_drive import (
     VelocityLimits,
 )
 from ..errors import ParameterError
-from .executable import run_node
+from .executable import only_ros_arguments, run_node
 from .parameters import LiveParameters, check_value, descriptor
 
 #: s between two looks for cmd_vel publishers of the other twist type
@@ -126,6 +126,10 @@ LIMITS = ('max_linear_velocity', 'max_angular_velocity', 'max_linear_acceleratio
           'max_angular_acceleration', 'max_wheel_velocity')
 
 
+#: JointStates without a wheel's joint name, none with it, before that is told (a misspelt
+#: name; on a topic of several joints the wheel's own comes within a few messages)
+MISSES_TOLD = 20
+
 #: DriveStatus.state of a drive that does not follow its velocity commands
 NOT_FOLLOWING = frozenset({'offline', 'fault', 'disabled', 'stopped', 'blocked', 'watchdog'})
 
@@ -155,7 +159,8 @@ class WheelInput:
             return f'no status from the {self.name} wheel yet'
         age = (now - self.received).nanoseconds * 1e-9
         if age > timeout_s:
-            return f'{self.name} wheel status is {age:.2f} s old'
+            # (no age in the text: a halt is told once per cause, not once per cycle)
+            return f'{self.name} wheel status older than wheel_status_timeout {timeout_s:g} s'
         if age < 0.0:
             return f'{self.name} wheel status is from before the clock jumped back'
         if not self.online:
@@ -187,6 +192,8 @@ class WheelPosition:
     def __init__(self, sign: float, joint: str = '') -> None:
         self.sign = sign
         self.joint = joint      # its name in the JointState ('' = the message's only joint)
+        self.seen = ''          # without ``joint``: the name of the joint it took first
+        self.misses = 0         # messages without ``joint`` before the first with it
         self.position_rad = math.nan
         self.velocity_rad_s = math.nan     # at the same moment (NaN: not given)
         self.measured: Time | None = None  # its header stamp (None: zero, not known)
@@ -202,14 +209,22 @@ class WheelPosition:
         """
         if self.joint:
             if self.joint not in msg.name:
-                # another joint's message, unless none has named it (a misspelt name)
-                return '' if self.updates else \
+                # another joint's message, unless many came and none named it (misspelt)
+                self.misses += 1
+                return '' if self.updates or self.misses < MISSES_TOLD else \
                     f'no {self.joint!r} in it (it names {", ".join(msg.name[:4]) or "none"})'
             index = list(msg.name).index(self.joint)
         elif len(msg.name) > 1 or len(msg.position) > 1:
             return (f'a JointState of {len(msg.name)} joints ({", ".join(msg.name[:4])}): '
                     'set the wheel_joint_name parameters to pick the wheels')
         else:
+            # One joint per message: always the same one (another's on a shared topic
+            # would be taken as this wheel's position).
+            name = msg.name[0] if msg.name else ''
+            self.seen = self.seen or name
+            if name != self.seen:
+                return (f'joint {name!r} after {self.seen!r}: several joints on one topic; '
+                        'set the wheel_joint_name parameters to pick the wheels')
             index = 0
         if len(msg.position) > index:
             self.position_rad = self.sign * float(msg.position[index])
@@ -268,6 +283,14 @@ class DiffDriveNode(Node):
         self.left_position = WheelPosition(self.left.sign, str(values['left_wheel_joint_name']))
         self.right_position = WheelPosition(self.right.sign,
                                             str(values['right_wheel_joint_name']))
+        shared = self.resolve_topic_name(str(values['left_wheel_joint_states_topic']))
+        if self.position_feedback and shared == self.resolve_topic_name(
+                str(values['right_wheel_joint_states_topic'])) and not (
+                self.left_position.joint and self.right_position.joint):
+            # (each wheel would take the other's positions as its own)
+            raise ParameterError(
+                f"both wheels' joint states come on {shared}: set left_wheel_joint_name "
+                'and right_wheel_joint_name (or position_feedback false)')
         # positions at the last update, and how many each wheel had received by then
         self._baseline: tuple[float, float] | None = None
         self._baseline_updates = (0, 0)
@@ -563,8 +586,13 @@ class DiffDriveNode(Node):
             self.tf_pub.publish(self._tf_message_type(transforms=[transform]))
 
 
+def make_diff_drive_node(args: list[str] | None = None) -> DiffDriveNode:
+    only_ros_arguments(args)
+    return DiffDriveNode()
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('diff_drive', DiffDriveNode, args)
+    return run_node('diff_drive', lambda: make_diff_drive_node(args), args)
 
 
 if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
