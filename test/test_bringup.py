@@ -255,6 +255,11 @@ def test_a_mistyped_option_is_refused_not_taken_for_a_plain_node():
         parse_options(['drive_node', '--manged', '--ros-args', '-p', 'x:=1'])
     with pytest.raises(ParameterError, match='give --managed too'):
         parse_options(['drive_node', '--autostart', '--ros-args', '-p', 'x:=1'])
+    # nodes without options of their own refuse any too
+    from vfd_ros2.ros.executable import only_ros_arguments
+    only_ros_arguments(['diff_drive', '--ros-args', '-p', 'x:=1'])
+    with pytest.raises(ParameterError, match='unknown argument.* --managed'):
+        only_ros_arguments(['sim_drive', '--managed', '--ros-args', '-p', 'x:=1'])
 
 
 def test_a_params_file_that_does_not_parse_is_one_line_not_a_traceback(tmp_path, capsys):

@@ -26,8 +26,9 @@ from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedE
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
 
-from ..errors import VfdError
+from ..errors import ParameterError, VfdError
 
 #: start-up errors reported in one line (bad configuration), not as a traceback
 CONFIGURATION_ERRORS = (VfdError, ParameterException, NameValidationException, ValueError)
@@ -143,6 +144,18 @@ class RosLogBridge(logging.Handler):
         self._python_logger.removeHandler(self)
         self._python_logger.setLevel(self._kept[0])
         self._python_logger.propagate = self._kept[1]
+
+
+def only_ros_arguments(args: list[str] | None) -> None:
+    """Refuse command-line arguments other than ROS ones (ParameterError, one line).
+
+    A node without options of its own would start as if they were not there: a
+    ``--managed`` meant for a drive node would give a plain node without a word.
+    """
+    unknown = (remove_ros_args(args) if args is not None else remove_ros_args())[1:]
+    if unknown:
+        raise ParameterError(f'unknown argument(s) {" ".join(unknown)}: this node takes ROS '
+                             'arguments only (after --ros-args)')
 
 
 def settle_heap() -> None:

@@ -40,7 +40,7 @@ from vfd_ros2.srv import InjectFault
 
 from ..errors import VfdError
 from ..profiles import load_profile
-from ..ros.executable import run_node
+from ..ros.executable import only_ros_arguments, run_node
 from ..ros.parameters import LIVE_NOTE, describe_read_only_except, descriptor
 from .canopen_drive import SimulatedCanBus, SimulatedCanopenDrive
 from .model import SimulatedDrive
@@ -263,8 +263,13 @@ class SimDriveNode(Node):
         super().destroy_node()
 
 
+def make_sim_drive_node(args: list[str] | None = None) -> SimDriveNode:
+    only_ros_arguments(args)
+    return SimDriveNode()
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node('sim_drive', SimDriveNode, args)
+    return run_node('sim_drive', lambda: make_sim_drive_node(args), args)
 
 
 if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
