@@ -204,7 +204,7 @@ def test_silent_framings_cost_only_the_silent_limit(mixed_line):
 def test_the_budget_stops_the_scan_and_says_what_it_left_out(mixed_line):
     line, _ = mixed_line
     code, out, _ = scan(['--port', str(line.link_path), '--ids', '1-247', '--max-requests',
-                         '12', '--response-time', '0.02'])
+                         '12', '--response-time', '0.1'])
     assert code == FOUND                                     # ids 1-4 came first
     assert 'not covered' in out and 'request budget (12) used up' in out
     assert line.stats.frames <= 12 + 4 * 6     # the probes, plus the found units' own reads
