@@ -46,9 +46,9 @@ from .base import (
 
 T = TypeVar('T')
 
-#: s after a status register was refused before it is asked again: a refusal that lasts
-#: costs an exception reply (and a cycle of single reads) this often; one that passed
-#: (a burst of frame errors) stops being reported, and blocking a drive, within it.
+#: s after a status register was refused before it is asked again, alone: a refusal that
+#: lasts costs one exception reply this often; one that passed (a burst of frame errors)
+#: stops being reported, and blocking a drive, within it.
 REFUSAL_RETRY = 5.0
 
 
@@ -103,6 +103,10 @@ class ModbusDrive(DriveOnLink):
              parameter.scale, parameter)
             for signal, parameter in self._signals]
         self._status_words = [profile.parameter(code) for code in profile.status_words]
+        # (address, register count) of every value polled, once each
+        self._spans = list(dict.fromkeys(
+            [(p.address, p.register_count) for _, p in self._signals] +
+            [(p.address, p.register_count) for p in self._status_words]))
         self._refused: dict[int, str] = {}      # register -> why the drive refuses it
         # When the refused values are asked again, each alone (_retry_refusals): a
         # burst of exception replies (a frame error, a device failure) would otherwise
@@ -130,9 +134,7 @@ class ModbusDrive(DriveOnLink):
     def _plan_reads(self, split: ReadBlock | None = None) -> None:
         """Plan the status reads around refused registers; ``split`` is read span by span."""
         profile = self.profile
-        spans = [(p.address, p.register_count) for _, p in self._signals]
-        spans += [(p.address, p.register_count) for p in self._status_words]
-        spans = [(a, n) for a, n in dict.fromkeys(spans) if not self._refuses(a, n)]
+        spans = [(a, n) for a, n in self._spans if not self._refuses(a, n)]
         def readable(address: int) -> bool:
             # A block never reaches over a refused register, nor (on most drives) over
             # an undocumented one.
@@ -531,10 +533,8 @@ class ModbusDrive(DriveOnLink):
         one exception reply per REFUSAL_RETRY and never the values read with it.
         """
         self._retry_refused_at = math.inf
-        spans = [(p.address, p.register_count) for _, p in self._signals]
-        spans += [(p.address, p.register_count) for p in self._status_words]
         answered = False
-        for address, count in dict.fromkeys(spans):
+        for address, count in self._spans:
             if not self._refuses(address, count):
                 continue
             if preempt is not None:
@@ -551,17 +551,13 @@ class ModbusDrive(DriveOnLink):
             known.update(zip(range(address, address + len(words)), words))
             answered = True
         if answered:
-            if not any(self._refuses(address, count) for address, count in spans):
+            if not any(self._refuses(address, count) for address, count in self._spans):
                 self._refused.clear()       # (a refused block's undocumented gaps too)
             self._plan_reads()
 
     def _refuse(self, block: ReadBlock, exc: ProtocolException) -> None:
         """Handle a refused status read: read its values one by one, drop the refused."""
-        spans = [(p.address, p.register_count) for _, p in self._signals
-                 if block.covers(p.address, p.register_count)]
-        spans += [(p.address, p.register_count) for p in self._status_words
-                  if block.covers(p.address, p.register_count)]
-        if len(set(spans)) > 1:
+        if sum(block.covers(address, count) for address, count in self._spans) > 1:
             self._plan_reads(split=block)        # next cycle: each value on its own
             return
         for address in range(block.start, block.start + block.count):

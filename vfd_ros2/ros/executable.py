@@ -146,13 +146,18 @@ class RosLogBridge(logging.Handler):
         self._python_logger.propagate = self._kept[1]
 
 
+def non_ros_arguments(args: list[str] | None) -> list[str]:
+    """Return the command line's arguments but the program and the ROS ones."""
+    return (remove_ros_args(args) if args is not None else remove_ros_args())[1:]
+
+
 def only_ros_arguments(args: list[str] | None) -> None:
     """Refuse command-line arguments other than ROS ones (ParameterError, one line).
 
     A node without options of its own would start as if they were not there: a
     ``--managed`` meant for a drive node would give a plain node without a word.
     """
-    unknown = (remove_ros_args(args) if args is not None else remove_ros_args())[1:]
+    unknown = non_ros_arguments(args)
     if unknown:
         raise ParameterError(f'unknown argument(s) {" ".join(unknown)}: this node takes ROS '
                              'arguments only (after --ros-args)')

@@ -32,11 +32,11 @@ from typing import Callable, Mapping
 from lifecycle_msgs.srv import ChangeState
 from rclpy.impl.rcutils_logger import RcutilsLogger
 from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
-from rclpy.utilities import remove_ros_args
 
 from ..control.controller import DriveController
 from ..control.state import ActionResult
 from ..errors import ParameterError
+from .executable import non_ros_arguments
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 FAILURE = TransitionCallbackReturn.FAILURE
@@ -59,8 +59,7 @@ def parse_options(args: list[str] | None) -> argparse.Namespace:
                         help='run as a managed (lifecycle) node')
     parser.add_argument('--autostart', action='store_true',
                         help='with --managed: configure and activate at start')
-    options, unknown = parser.parse_known_args(remove_ros_args(args)[1:] if args is not None
-                                               else remove_ros_args()[1:])
+    options, unknown = parser.parse_known_args(non_ros_arguments(args))
     if unknown:
         raise ParameterError(f'unknown argument(s) {" ".join(unknown)}: the options are '
                              '--managed and --autostart; ROS arguments go after --ros-args')
