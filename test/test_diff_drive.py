@@ -475,7 +475,9 @@ def test_odometry_turns_counter_clockwise_for_positive_yaw_rate(make_rig):
              'yaw past 0.5 rad')
     odom = rig.odom[-1]
     assert odom.twist.twist.angular.z == pytest.approx(1.0)
-    assert odom.pose.pose.position.x == pytest.approx(0.0, abs=1e-9)
+    # On the spot: no more than the one period a cycle may fall between the two wheels'
+    # statuses as they start (one wheel at 2.5 rad/s alone: 2.5 mm)
+    assert odom.pose.pose.position.x == pytest.approx(0.0, abs=5e-3)
     assert (odom.header.frame_id, odom.child_frame_id) == ('map_odom', 'robot_base')
 
 
