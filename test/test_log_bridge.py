@@ -60,3 +60,28 @@ def test_records_held_for_a_node_that_never_came_go_to_stderr(capsys):
     logging.getLogger('vfd_ros2.drives.modbus').warning('C02.04 refused')
     bridge.remove()
     assert '[WARNING] C02.04 refused' in capsys.readouterr().err
+
+
+def test_records_after_the_context_shut_down_go_to_stderr(capfd):
+    """Ctrl-C shut the context down while a drive's loop still logs its last words.
+
+    ROS logging printed them, and with each a "Failed to publish log message to
+    rosout" line: they go to stderr in the console's form, without it.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    context = Context()
+    rclpy.init(context=context)
+    node = Node('drive', namespace='/log_bridge_shutdown', context=context)
+    bridge = RosLogBridge()
+    try:
+        bridge.attach(node)
+        context.try_shutdown()
+        logging.getLogger('vfd_ros2.control.controller').warning('could not stop %s', 'x')
+    finally:
+        bridge.remove()
+        node.destroy_node()
+    err = capfd.readouterr().err
+    assert '[WARN] [log_bridge_shutdown.drive]: could not stop x' in err, err
+    assert 'rosout' not in err, err

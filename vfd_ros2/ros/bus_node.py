@@ -280,7 +280,7 @@ class ManagedBusNode(ManagedTransitions, BusNode, LifecycleNode):
         self.transitions = DriveTransitions(
             self.get_logger(), self.bus.start, self.bus.shutdown,
             {node.get_fully_qualified_name(): (node.controller, self._gate(node))
-             for node in self.drive_nodes})
+             for node in self.drive_nodes}, self.context.ok)
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
         self._refuse_unavailable_transitions()
 

@@ -437,7 +437,8 @@ class ManagedDriveNode(ManagedTransitions, DriveNode, LifecycleNode):
         super().__init__(node_name, managed=True, **kwargs)
         self.transitions = DriveTransitions(
             self.get_logger(), self.controller.start, self.controller.shutdown,
-            {self.get_fully_qualified_name(): (self.controller, self._allow_motion)})
+            {self.get_fully_qualified_name(): (self.controller, self._allow_motion)},
+            self.context.ok)
         self.transitions.mark_unconfigured()       # as it starts: unconfigured
         self._refuse_unavailable_transitions()
 
@@ -459,7 +460,9 @@ def make_drive_node(args: list[str] | None = None, **kwargs: Any) -> DriveNode:
 def autostart(node: LifecycleNode) -> None:
     """Configure and activate, as a lifecycle manager with autostart would; log a failure.
 
-    Whatever ends it early (Ctrl-C's KeyboardInterrupt out of a transition's wait, an
+    Ctrl-C or SIGTERM during a transition shuts the context down: the transition's
+    wait ends, and so does autostart, quietly; run_node stops the drive as it destroys
+    the node. Whatever else ends it early (a second Ctrl-C's KeyboardInterrupt, an
     error) destroys the node first, so its drive is stopped before the port closes:
     the caller never got the node to destroy.
     """
@@ -470,8 +473,8 @@ def autostart(node: LifecycleNode) -> None:
             except Exception:
                 if node.context.ok():
                     raise
-                # SIGTERM during the transition: rclpy cannot tell its end any more (the
-                # context is shut down). run_node stops the drive as it destroys the node.
+                return      # (rclpy cannot tell a transition's end once the context is down)
+            if not node.context.ok():
                 return
             if result != TransitionCallbackReturn.SUCCESS:
                 node.get_logger().error('autostart stopped: the node stays in its current '

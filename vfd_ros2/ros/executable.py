@@ -14,10 +14,12 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import signal
 import sys
 import threading
 import traceback
-from typing import Callable, Iterable
+from contextlib import contextmanager
+from typing import Callable, Iterable, Iterator
 
 import rclpy
 from rclpy.context import Context
@@ -45,6 +47,12 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     # lets go: after the switch interval (5 ms by default) when the executor is busy
     # with callbacks. That wait went into every transaction of a 32-drive bus.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
+    with interrupts_through_rclpy():
+        return _run_node(name, make_node, args, extra_nodes)
+
+
+def _run_node(name: str, make_node: Callable[[], Node], args: list[str] | None,
+              extra_nodes: Callable[[Node], Iterable[Node]]) -> int:
     try:
         rclpy.init(args=args)
     except _rclpy.RCLError as exc:      # e.g. a --params-file that does not parse
@@ -63,8 +71,14 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except CONFIGURATION_ERRORS as exc:
-        print(f'{name}: {exc}')
-        return 1
+        if rclpy.ok():
+            print(f'{name}: {exc}')
+            return 1
+    except Exception:
+        if rclpy.ok():
+            raise
+        # Ctrl-C or SIGTERM while the node was being built: rclpy's handler shut the
+        # context down under it, and what it was building refused to go on.
     finally:
         # The executor lets go of the nodes first: it must not be waiting on entities
         # that are being destroyed (the events executor raises then).
@@ -77,6 +91,38 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     return 0
 
 
+@contextmanager
+def interrupts_through_rclpy() -> Iterator[None]:
+    """Have the first Ctrl-C end the spin through rclpy only, not as a KeyboardInterrupt.
+
+    rclpy's SIGINT handler shuts the context down (the spin ends, run_node cleans up),
+    then calls the handler that was there before it: Python's, which raises
+    KeyboardInterrupt in the main thread wherever it is, often inside a timer's
+    callback, which the events executor then logs as a FATAL "Exception in 'timers'
+    callback" on the way out (diff_drive: one exit in eight). This one, installed
+    before rclpy's, takes the first Ctrl-C quietly; a second raises KeyboardInterrupt
+    as before, so a clean-up that hangs can still be cut short.
+    """
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or \
+            previous is not signal.default_int_handler:
+        yield           # (not Python's own handler: somebody chose another, keep it)
+        return
+    interrupted = False
+
+    def on_interrupt(_signal_number: int, _frame: object) -> None:
+        nonlocal interrupted
+        if interrupted:
+            raise KeyboardInterrupt
+        interrupted = True
+
+    signal.signal(signal.SIGINT, on_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class RosLogBridge(logging.Handler):
     """The driver's layers below ROS log with Python ``logging``; this hands it to ROS.
 
@@ -85,7 +131,10 @@ class RosLogBridge(logging.Handler):
     a robot's log recorder). They go to the node's logger, at their level. Installed
     before the node is made: a plain node's loop starts in its constructor and logs
     its first connect at once; those records wait (``HELD_RECORDS`` at most) until
-    ``attach`` names the node, or go to stderr if no node comes.
+    ``attach`` names the node, or go to stderr if no node comes. Once Ctrl-C or
+    SIGTERM has shut the node's context down (a drive's last words as its loop
+    ends), they go to stderr in the console's form: ROS logging would add a
+    "Failed to publish log message to rosout" line to each.
     """
 
     #: records kept until the node exists (a start-up's connect attempts and notes)
@@ -94,6 +143,7 @@ class RosLogBridge(logging.Handler):
     def __init__(self, logger_name: str = 'vfd_ros2') -> None:
         super().__init__(logging.INFO)
         self._log: RcutilsLogger | None = None
+        self._context: Context | None = None
         self._held: list[logging.LogRecord] = []
         self._python_logger = logging.getLogger(logger_name)
         self._kept = (self._python_logger.level, self._python_logger.propagate)
@@ -105,6 +155,7 @@ class RosLogBridge(logging.Handler):
         """Send the records to ``node``'s logger from now on, those held first."""
         with self.lock:             # (emit runs under it, from any thread)
             self._log = node.get_logger()
+            self._context = node.context
             held, self._held = self._held, []
             for record in held:
                 self._to_ros(record)
@@ -124,7 +175,10 @@ class RosLogBridge(logging.Handler):
         if record.exc_info:
             message += '\n' + ''.join(traceback.format_exception(*record.exc_info))
         level, log = record.levelno, self._log
-        if level >= logging.CRITICAL:
+        if not self._context.ok():
+            shown = ROS_LEVEL_NAMES.get(record.levelname, record.levelname)
+            print(f'[{shown}] [{log.name}]: {message}', file=sys.stderr, flush=True)
+        elif level >= logging.CRITICAL:
             log.fatal(message)
         elif level >= logging.ERROR:
             log.error(message)
@@ -144,6 +198,10 @@ class RosLogBridge(logging.Handler):
         self._python_logger.removeHandler(self)
         self._python_logger.setLevel(self._kept[0])
         self._python_logger.propagate = self._kept[1]
+
+
+#: Python's level names as ROS's console shows them
+ROS_LEVEL_NAMES = {'WARNING': 'WARN', 'CRITICAL': 'FATAL'}
 
 
 def non_ros_arguments(args: list[str] | None) -> list[str]:

@@ -15,7 +15,8 @@ enable is refused) fails with the reason logged and the state unchanged; an
 unexpected error (a stop that is not verified, an exception) goes to
 ErrorProcessing, which stops the loop (stop written, link closed) and returns
 to unconfigured. Transitions block the executor for at most the drive's
-action or stop timeout.
+action or stop timeout; Ctrl-C or SIGTERM ends the wait at once (the node goes,
+and its loop's end writes the stop).
 
 The executables take ``--managed`` (a lifecycle node; plain is the default)
 and ``--autostart`` (configure and activate at start, as a lifecycle manager
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import time
 from concurrent.futures import Future
+from concurrent.futures import wait as futures_wait
 from typing import Callable, Mapping
 
 from lifecycle_msgs.srv import ChangeState
@@ -69,24 +71,39 @@ def parse_options(args: list[str] | None) -> argparse.Namespace:
     return options
 
 
-def wait_online(controllers: Mapping[str, DriveController], timeout: float) -> dict[str, str]:
-    """Wait until every controller's drive is online; return {name: why} of the others."""
+#: s between two looks at what a transition waits for (and at the node's context)
+WAIT_STEP = 0.01
+
+
+def wait_online(controllers: Mapping[str, DriveController], timeout: float,
+                keep_waiting: Callable[[], bool] = lambda: True) -> dict[str, str]:
+    """Wait until every controller's drive is online; return {name: why} of the others.
+
+    Ends early once ``keep_waiting()`` is false (the node's context shut down by
+    Ctrl-C or SIGTERM: nobody waits for the transition any more).
+    """
     deadline = time.monotonic() + timeout
     while True:
         offline = {name: c.state.link_error or c.link.error or 'no reply yet'
                    for name, c in controllers.items() if not c.state.online}
-        if not offline or time.monotonic() > deadline:
+        if not offline or time.monotonic() > deadline or not keep_waiting():
             return offline
-        time.sleep(0.01)
+        time.sleep(WAIT_STEP)
 
 
-def results(futures: Mapping[str, Future], timeout: float) -> dict[str, ActionResult]:
-    """Wait for the controllers' action results (concurrent futures, not the executor)."""
+def results(futures: Mapping[str, Future], timeout: float,
+            keep_waiting: Callable[[], bool] = lambda: True) -> dict[str, ActionResult]:
+    """Wait for the controllers' action results (concurrent futures, not the executor).
+
+    Ends early, as ``wait_online`` does, once ``keep_waiting()`` is false.
+    """
     deadline = time.monotonic() + timeout
     done = {}
     for name, future in futures.items():
+        while not future.done() and keep_waiting() and time.monotonic() < deadline:
+            futures_wait([future], WAIT_STEP)
         try:
-            done[name] = future.result(max(0.0, deadline - time.monotonic()))
+            done[name] = future.result(0.0)
         except Exception as exc:  # noqa: BLE001 - a timeout is a failed action
             done[name] = ActionResult(False, f'no result: {exc!r}')
     return done
@@ -101,8 +118,11 @@ class DriveTransitions:
 
     def __init__(self, logger: RcutilsLogger, start: Callable[[], None],
                  stop_loop: Callable[[], None],
-                 gates: Mapping[str, tuple[DriveController, Callable[[bool], None]]]) -> None:
+                 gates: Mapping[str, tuple[DriveController, Callable[[bool], None]]],
+                 keep_waiting: Callable[[], bool] = lambda: True) -> None:
+        """``keep_waiting``: false once the node's context is shut down (Ctrl-C, SIGTERM)."""
         self._logger = logger
+        self._keep_waiting = keep_waiting
         self._start = start
         self._stop_loop = stop_loop
         self._gates = gates
@@ -138,7 +158,10 @@ class DriveTransitions:
         self._start()
         timeout = max(max(c.config.action_timeout for c in controllers.values()), 1.0) + \
             max(c.addressing_interval() for c in controllers.values())
-        offline = wait_online(controllers, timeout)
+        offline = wait_online(controllers, timeout, self._keep_waiting)
+        if offline and not self._keep_waiting():
+            self._close()       # the node goes: no error to log (and no /rosout to log to)
+            return FAILURE
         if offline:
             self._close()
             return self._fail('configure', 'drive(s) not online: ' + '; '.join(
@@ -159,10 +182,12 @@ class DriveTransitions:
                 enabling[name] = controller
         done = results({name: c.submit('enable') for name, c in enabling.items()},
                        max((c.config.action_timeout for c in enabling.values()), default=0)
-                       * 2 + 1.0)
+                       * 2 + 1.0, self._keep_waiting)
         problem = failures(done)
         if problem:
             self._hold()
+            if not self._keep_waiting():        # (as in configure)
+                return FAILURE
             return self._fail('activate', f'enable refused: {problem}', FAILURE)
         return SUCCESS
 
@@ -171,10 +196,13 @@ class DriveTransitions:
         controllers = {name: gate[0] for name, gate in self._gates.items()}
         return results({name: c.submit('stop', latch=False)
                         for name, c in controllers.items()},
-                       max(c.config.stop_timeout for c in controllers.values()) + 1.0)
+                       max(c.config.stop_timeout for c in controllers.values()) + 1.0,
+                       self._keep_waiting)
 
     def deactivate(self) -> TransitionCallbackReturn:
         problem = failures(self._hold())
+        if problem and not self._keep_waiting():
+            return FAILURE      # the node goes, and its loop's end writes the stop
         if problem:
             return self._fail('deactivate', f'stop not verified: {problem}', ERROR)
         return SUCCESS
