@@ -395,7 +395,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f'stop {wheel.name}: {reply.message if reply else "no reply"}')
         print('demo finished:', 'both wheels followed the profile' if ok else 'FAILED')
     except KeyboardInterrupt:
-        pass
+        # (the terminal's Ctrl-C reached the nodes too; they take the second one below
+        # as the same request: see ros/executable.py Interrupts)
+        print('demo interrupted: stopping the drives and the nodes')
+        return 130
     finally:
         commander.destroy_node()
         if in_process is not None:

@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import traceback
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator
@@ -47,17 +48,21 @@ def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = 
     # lets go: after the switch interval (5 ms by default) when the executor is busy
     # with callbacks. That wait went into every transaction of a 32-drive bus.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    with interrupts_through_rclpy():
-        return _run_node(name, make_node, args, extra_nodes)
+    with interrupts_through_rclpy(name) as interrupts:
+        return _run_node(name, make_node, args, extra_nodes, interrupts)
 
 
 def _run_node(name: str, make_node: Callable[[], Node], args: list[str] | None,
-              extra_nodes: Callable[[Node], Iterable[Node]]) -> int:
+              extra_nodes: Callable[[Node], Iterable[Node]],
+              interrupts: Interrupts | None) -> int:
     try:
         rclpy.init(args=args)
     except _rclpy.RCLError as exc:      # e.g. a --params-file that does not parse
         print(f'{name}: cannot start (check --ros-args and --params-file): {exc}')
         return 1
+    if interrupts is not None and interrupts.interrupted:
+        rclpy.try_shutdown()        # (Ctrl-C before rclpy's handler was there to take it)
+        return 0
     node = executor = None
     bridge = RosLogBridge()
     try:
@@ -91,36 +96,69 @@ def _run_node(name: str, make_node: Callable[[], Node], args: list[str] | None,
     return 0
 
 
-@contextmanager
-def interrupts_through_rclpy() -> Iterator[None]:
-    """Have the first Ctrl-C end the spin through rclpy only, not as a KeyboardInterrupt.
+#: s after the first Ctrl-C in which another is ignored: the clean-up writes the drives'
+#: stops (the loop's end: ~0.1 s for a drive, longer for a bus with silent drives)
+INTERRUPT_GRACE = 5.0
 
-    rclpy's SIGINT handler shuts the context down (the spin ends, run_node cleans up),
-    then calls the handler that was there before it: Python's, which raises
-    KeyboardInterrupt in the main thread wherever it is, often inside a timer's
-    callback, which the events executor then logs as a FATAL "Exception in 'timers'
-    callback" on the way out (diff_drive: one exit in eight). This one, installed
-    before rclpy's, takes the first Ctrl-C quietly; a second raises KeyboardInterrupt
-    as before, so a clean-up that hangs can still be cut short.
+
+class Interrupts:
+    """Ctrl-C for an executable: the first ends the spin through rclpy only, quietly.
+
+    rclpy's SIGINT handler shuts the context down (the spin ends, run_node cleans
+    up), then calls the handler that was there before it: Python's, which raised
+    KeyboardInterrupt in the main thread wherever it was, often inside a timer's
+    callback, which the events executor then logged as a FATAL "Exception in
+    'timers' callback" (diff_drive: one exit in eight). This handler, installed
+    before rclpy's, takes the first Ctrl-C quietly. Another in the next
+    INTERRUPT_GRACE seconds is ignored, with a word: a KeyboardInterrupt in the
+    clean-up skipped the drives' stops (a double tap; a launcher that signals the
+    processes its terminal already signalled). A later one raises KeyboardInterrupt,
+    so a clean-up that hangs can still be cut short.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.first_at: float | None = None
+        self._told = False
+
+    @property
+    def interrupted(self) -> bool:
+        return self.first_at is not None
+
+    def __call__(self, _signal_number: int, _frame: object) -> None:
+        now = time.monotonic()
+        if self.first_at is None:
+            self.first_at = now
+        elif now - self.first_at < INTERRUPT_GRACE:
+            if not self._told:
+                self._told = True
+                print(f'[WARN] [{self.name}]: shutting down: the drives are stopped first (a '
+                      f'Ctrl-C {INTERRUPT_GRACE:.0f} s after the first abandons that)',
+                      file=sys.stderr, flush=True)
+        else:
+            raise KeyboardInterrupt
+
+
+@contextmanager
+def interrupts_through_rclpy(name: str) -> Iterator[Interrupts | None]:
+    """Handle SIGINT with ``Interrupts``; None in a thread, or if somebody chose a handler.
+
+    Once interrupted, SIGINT is ignored after the clean-up: the interpreter's
+    finalization resets a handler to the default, and a second Ctrl-C then (a
+    double tap, or a launcher's SIGINT after its terminal's) made the exit status
+    "killed by SIGINT", as a launch reports a crash.
     """
     previous = signal.getsignal(signal.SIGINT)
     if threading.current_thread() is not threading.main_thread() or \
             previous is not signal.default_int_handler:
-        yield           # (not Python's own handler: somebody chose another, keep it)
+        yield None
         return
-    interrupted = False
-
-    def on_interrupt(_signal_number: int, _frame: object) -> None:
-        nonlocal interrupted
-        if interrupted:
-            raise KeyboardInterrupt
-        interrupted = True
-
-    signal.signal(signal.SIGINT, on_interrupt)
+    interrupts = Interrupts(name)
+    signal.signal(signal.SIGINT, interrupts)
     try:
-        yield
+        yield interrupts
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGINT, signal.SIG_IGN if interrupts.interrupted else previous)
 
 
 class RosLogBridge(logging.Handler):

@@ -253,7 +253,16 @@ class ManagedTransitions:
                     f'{machine.current_state[1]}')
                 response.success = False
                 return response
-            return change_state(request, response)
+            try:
+                return change_state(request, response)
+            except Exception:
+                if self.context.ok():
+                    raise
+                # Ctrl-C or SIGTERM during the transition: rclpy cannot publish its
+                # end on the shut-down context (the events executor logged it as FATAL).
+                # The node goes; its loop's end writes the stop.
+                response.success = False
+                return response
         service.callback = guarded
 
     def _transition(self, name: str) -> TransitionCallbackReturn:
