@@ -697,6 +697,39 @@ def test_a_wheel_that_does_not_follow_stops_the_other_too(make_rig, trouble):
     rig.wait_commands(4.0, 6.0, what='the arc again once both follow')
 
 
+def test_raised_timeouts_revive_neither_an_old_cmd_vel_nor_a_silent_wheel(make_rig):
+    """A timeout raised after it ran out applies to what comes next (outside audit).
+
+    A raised cmd_vel_timeout restarted the robot on the cmd_vel it had timed out;
+    a raised wheel_status_timeout made a dead wheel's last status fresh again, and
+    the other wheel ran alone.
+    """
+    def stays_stopped(what: str) -> None:
+        count = len(rig.left.commands)
+        wait_for(lambda: len(rig.left.commands) > count + 10, 2.0, 'more commands')
+        assert set(rig.left.commands[count:]) == {0.0}, what
+        assert set(rig.right.commands[count:]) == {0.0}, what
+
+    rig = make_rig()
+    rig.twist = (0.5, 0.4)
+    rig.wait_commands(4.0, 6.0, what='arc')
+    rig.twist = None
+    rig.wait_commands(0.0, 0.0, 2.0, 'zeros after the timeout')
+    result = rig.node.set_parameters([Parameter('cmd_vel_timeout', value=60.0)])[0]
+    assert result.successful, result.reason
+    stays_stopped('cmd_vel_timeout raised')
+
+    rig.twist = (0.5, 0.4)                   # a new cmd_vel: the new timeout
+    rig.wait_commands(4.0, 6.0, what='the arc on a new cmd_vel')
+    rig.right.publishing = False
+    rig.wait_commands(0.0, 0.0, what='both wheels stopped')
+    result = rig.node.set_parameters([Parameter('wheel_status_timeout', value=60.0)])[0]
+    assert result.successful, result.reason
+    stays_stopped('wheel_status_timeout raised')
+    rig.right.publishing = True
+    rig.wait_commands(4.0, 6.0, what='the arc again once the wheel reports')
+
+
 def test_wheel_positions_measured_apart_are_paired_at_one_moment(make_rig):
     """A bus reads the two wheels a cycle apart; each JointState carries its own moment.
 
@@ -784,20 +817,20 @@ def test_a_wheel_takes_only_its_own_joint():
     # of single-joint messages only the joint taken first.
     unnamed = WheelPosition(1.0)
     assert 'set the wheel_joint_name' in unnamed.update(
-        JointState(name=['r', 'l'], position=[1.0, 2.0]), now)
-    assert unnamed.update(JointState(name=['l'], position=[2.0]), now) == ''
+        JointState(name=['r', 'l'], position=[1.0, 2.0]), now, 0.5)
+    assert unnamed.update(JointState(name=['l'], position=[2.0]), now, 0.5) == ''
     assert 'several joints on one topic' in unnamed.update(
-        JointState(name=['r'], position=[1.0]), now)
+        JointState(name=['r'], position=[1.0]), now, 0.5)
     assert unnamed.position_rad == 2.0 and unnamed.updates == 1
     # Named: others' messages are ignored, until so many came without it that the name
     # looks misspelt.
     named = WheelPosition(1.0, 'left')
-    told = [named.update(JointState(name=['l'], position=[0.0]), now)
+    told = [named.update(JointState(name=['l'], position=[0.0]), now, 0.5)
             for _ in range(MISSES_TOLD)]
     assert told[:-1] == [''] * (MISSES_TOLD - 1) and "no 'left' in it" in told[-1]
-    assert named.update(JointState(name=['r', 'left'], position=[1.0, 3.0]), now) == ''
+    assert named.update(JointState(name=['r', 'left'], position=[1.0, 3.0]), now, 0.5) == ''
     assert named.position_rad == 3.0
-    assert named.update(JointState(name=['l'], position=[0.0]), now) == ''
+    assert named.update(JointState(name=['l'], position=[0.0]), now, 0.5) == ''
 
 
 def test_a_clock_that_jumps_back_ends_the_last_command(make_rig):

@@ -96,6 +96,38 @@ def test_drive_node_max_velocity_is_applied_at_the_drive(make_harness):
     assert h.node.controller.config.cycle_period == 0.01
 
 
+def test_no_parameter_moves_the_wheel_on_a_command_taken_before_it(make_harness):
+    """A raised command_timeout, a lowered max_velocity: each applies from now on.
+
+    Found by an outside audit: a raised command_timeout revived the last command
+    after the watchdog had stopped the wheel, and a lowered max_velocity waited for
+    the next command while the last one drove the wheel over the new limit.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'command_timeout': 10.0})
+    node = f'{h.namespace}/drive'
+    h.stream(2.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.02, 6.0,
+                  'motor at 2 rad/s')
+    h.stop_stream()                     # the last command holds for 10 s
+    assert set_parameter(h.tester, node, 'max_velocity', 1.0).successful
+    h.wait_status(lambda s: s.commanded_velocity == 1.0 and
+                  abs(s.measured_velocity - 1.0) < 0.02, 3.0, 'the last command capped')
+
+    assert set_parameter(h.tester, node, 'command_timeout', 0.2).successful   # at once
+    h.wait_status(lambda s: s.watchdog_tripped and s.commanded_velocity == 0.0, 3.0,
+                  'watchdog trip')
+    h.wait_status(lambda s: not s.running and s.measured_velocity == 0.0, 6.0, 'stopped')
+    assert set_parameter(h.tester, node, 'command_timeout', 30.0).successful
+    h.wait_cycles(25)
+    status = h.wait_status(lambda s: True, 1.0, 'a status')
+    assert status.watchdog_tripped and not status.running, status
+    assert h.sim.speed_rpm == 0.0 and not h.sim.run_requested
+
+    h.stream(0.5)                       # a new command counts for the new timeout
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 0.5) < 0.02, 6.0,
+                  'running again on a new command')
+
+
 def test_drive_node_command_timeout_and_rates_are_applied(make_harness):
     # No drive-side comm-loss timeout: the rate is free (see the next test for one).
     h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.0})

@@ -55,6 +55,43 @@ def test_expires_after_the_timeout(clock):
     assert watchdog.age == pytest.approx(0.501)
 
 
+def test_a_longer_timeout_does_not_revive_a_command_that_expired(clock):
+    """A command_timeout raised after the commands stopped does not revive the last.
+
+    (Outside audit: the wheel ran again on a command seconds old.) The next
+    command counts for the new timeout.
+    """
+    watchdog = CommandWatchdog(0.5, clock)
+    watchdog.feed()
+    clock.advance(1.5)
+    assert watchdog.expired
+    watchdog.timeout = 30.0
+    assert watchdog.expired
+    watchdog.feed()
+    clock.advance(20.0)
+    assert not watchdog.expired
+
+
+def test_a_longer_timeout_does_not_lengthen_the_command_already_taken(clock):
+    watchdog = CommandWatchdog(0.5, clock)
+    watchdog.feed()
+    clock.advance(0.3)
+    watchdog.timeout = 30.0
+    clock.advance(0.3)
+    assert watchdog.expired
+    assert watchdog.deadline == pytest.approx(1000.5)
+
+
+def test_a_shorter_timeout_applies_to_the_command_already_taken(clock):
+    watchdog = CommandWatchdog(30.0, clock)
+    watchdog.feed()
+    clock.advance(0.3)
+    assert not watchdog.expired
+    watchdog.timeout = 0.25
+    assert watchdog.expired
+    assert watchdog.deadline == pytest.approx(1000.25)
+
+
 def test_each_feed_restarts_the_timeout(clock):
     watchdog = CommandWatchdog(0.5, clock)
     for _ in range(10):

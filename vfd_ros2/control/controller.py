@@ -343,7 +343,18 @@ class DriveController:
                 replan = True
         with self._lock:
             self.config = new
-            self._watchdog.timeout = new.command_timeout
+            self._watchdog.timeout = new.command_timeout    # (never revives a stale command)
+            # A lowered max_velocity bounds the command already taken too, at once: it
+            # used to wait for the next command, and a wheel could run over the new
+            # limit for up to command_timeout.
+            limit = new.max_velocity
+            bounded = min(max(self._velocity, -limit), limit)
+            urgent = bounded != self._velocity and \
+                not self.drive.transport.commands_keep_the_cycle
+            self._velocity = bounded
+            self._command_pending |= urgent
+        if urgent and self.request_preempt is not None:
+            self.request_preempt()
         if replan:
             self.plan_host_loss()
         self.services.action_timeout = new.action_timeout

@@ -145,19 +145,27 @@ class WheelInput:
         self.fault = False
         self.state = ''
         self.received: Time | None = None
+        self.timeout_s = math.inf   # wheel_status_timeout when it came (see ``_unheard``)
 
-    def update(self, msg: DriveStatus, now: Time) -> None:
+    def update(self, msg: DriveStatus, now: Time, timeout_s: float) -> None:
         self.velocity_rad_s = self.sign * float(msg.measured_velocity)
         self.online = bool(msg.online)
         self.fault = bool(msg.fault)
         self.state = str(msg.state)
         self.received = now
+        self.timeout_s = timeout_s
 
     def _unheard(self, now: Time, timeout_s: float) -> str:
-        """Return why nothing current is known of this wheel ('' if its status is fresh)."""
+        """Return why nothing current is known of this wheel ('' if its status is fresh).
+
+        A status counts for the timeout in force when it came, or a shorter one set
+        since: a raised wheel_status_timeout must not make a dead wheel's last status
+        fresh again (the other wheel ran alone, the robot turning about the dead one).
+        """
         if self.received is None:
             return f'no status from the {self.name} wheel yet'
         age = (now - self.received).nanoseconds * 1e-9
+        timeout_s = min(timeout_s, self.timeout_s)
         if age > timeout_s:
             # (no age in the text: a halt is told once per cause, not once per cycle)
             return f'{self.name} wheel status older than wheel_status_timeout {timeout_s:g} s'
@@ -198,9 +206,10 @@ class WheelPosition:
         self.velocity_rad_s = math.nan     # at the same moment (NaN: not given)
         self.measured: Time | None = None  # its header stamp (None: zero, not known)
         self.received: Time | None = None
+        self.timeout_s = math.inf          # wheel_status_timeout when it came
         self.updates = 0        # positions received so far
 
-    def update(self, msg: JointState, now: Time) -> str:
+    def update(self, msg: JointState, now: Time, timeout_s: float) -> str:
         """Take this wheel's position from ``msg``; return why it was refused ('' if not).
 
         A message naming several joints (a shared joint_states topic) is used only
@@ -233,6 +242,7 @@ class WheelPosition:
             stamp = Time.from_msg(msg.header.stamp, clock_type=now.clock_type)
             self.measured = stamp if stamp.nanoseconds else None
             self.received = now
+            self.timeout_s = timeout_s
             self.updates += 1
         return ''
 
@@ -248,8 +258,9 @@ class WheelPosition:
         return self.position_rad + self.velocity_rad_s * min(max(ahead, 0.0), limit_s)
 
     def usable(self, now: Time, timeout_s: float) -> bool:
+        """Return whether the position is fresh (as ``WheelInput``: the shorter timeout)."""
         return self.received is not None and math.isfinite(self.position_rad) and \
-            0.0 <= (now - self.received).nanoseconds * 1e-9 <= timeout_s
+            0.0 <= (now - self.received).nanoseconds * 1e-9 <= min(timeout_s, self.timeout_s)
 
 
 class DiffDriveNode(Node):
@@ -301,6 +312,7 @@ class DiffDriveNode(Node):
         self.rejected_commands = 0
         self.target: tuple[float, float] = (0.0, 0.0)
         self.last_command: Time | None = None
+        self.last_command_timeout_s = math.inf     # cmd_vel_timeout when it came
         self.timed_out = True
         self.halted = ''            # why both wheels are held at zero ('' while they follow)
         self._halt_told = ''        # the cause last logged
@@ -384,6 +396,7 @@ class DiffDriveNode(Node):
                 return
             self.target = (float(msg.linear.x), float(msg.angular.z))
             self.last_command = self.get_clock().now()
+            self.last_command_timeout_s = self.cmd_vel_timeout_s
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.get_logger().error(f'cmd_vel failed: {exc}', throttle_duration_sec=1.0)
 
@@ -418,7 +431,7 @@ class DiffDriveNode(Node):
 
     def _on_joint(self, wheel: WheelPosition, msg: JointState) -> None:
         try:
-            refused = wheel.update(msg, self.get_clock().now())
+            refused = wheel.update(msg, self.get_clock().now(), self.wheel_status_timeout_s)
             if refused:
                 side = 'left' if wheel is self.left_position else 'right'
                 self.get_logger().warning(f'{side} wheel joint state refused: {refused}',
@@ -428,7 +441,7 @@ class DiffDriveNode(Node):
 
     def _on_status(self, wheel: WheelInput, msg: DriveStatus) -> None:
         try:
-            wheel.update(msg, self.get_clock().now())
+            wheel.update(msg, self.get_clock().now(), self.wheel_status_timeout_s)
         except Exception as exc:  # noqa: BLE001
             self.get_logger().error(f'{wheel.name} wheel status failed: {exc}',
                                     throttle_duration_sec=1.0)
@@ -482,9 +495,12 @@ class DiffDriveNode(Node):
 
     def _command(self, now: Time, dt: float) -> None:
         # (a command from before the clock jumped back, as simulated time does when a
-        # simulation restarts, is no fresher for it: its age is not known)
+        # simulation restarts, is no fresher for it: its age is not known; and one counts
+        # for the timeout in force when it came, or a shorter one set since: a raised
+        # cmd_vel_timeout restarted the robot on a cmd_vel it had timed out)
+        timeout_s = min(self.cmd_vel_timeout_s, self.last_command_timeout_s)
         fresh = self.last_command is not None and \
-            0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= self.cmd_vel_timeout_s
+            0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= timeout_s
         if not fresh and not self.timed_out and self.last_command is not None:
             self.get_logger().warning(
                 f'no valid cmd_vel for {self.cmd_vel_timeout_s} s: stopping the wheels')
