@@ -101,6 +101,18 @@ def test_run_time_parameters_work_in_both_directions(sim_node, tmp_path):
     ints = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=[2])
     assert set_parameter(client, 'silent_unit_ids', ints).successful
     assert node.drives[1].silent and not node.drives[0].silent
+    # Units not on the line, units that are not whole numbers, unset: refused, no change
+    # (1.5 was taken as unit 1; unset removed the parameter for good).
+    for bad in (ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
+                               double_array_value=[1.5]),
+                ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY,
+                               integer_array_value=[-1]),
+                ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY,
+                               integer_array_value=[2**40]),
+                ParameterValue(type=ParameterType.PARAMETER_NOT_SET)):
+        result = set_parameter(client, 'silent_unit_ids', bad)
+        assert not result.successful and 'silent_unit_ids' in result.reason, (bad, result)
+    assert node.drives[1].silent and not node.drives[0].silent
     empty = ParameterValue(type=ParameterType.PARAMETER_BOOL_ARRAY, bool_array_value=[])
     assert set_parameter(client, 'silent_unit_ids', empty).successful
     assert not node.drives[1].silent                          # plugged back the obvious way

@@ -169,8 +169,15 @@ class SimDriveNode(Node):
         changes = []
         for parameter in parameters:
             name, value = parameter.name, parameter.value
+            if value is None and name in self.live_parameters:
+                # (NOT_SET would remove a dynamically typed one: no way back)
+                raise ValueError(f'{name} cannot be unset ("[]" clears a list)')
             if name == 'silent_unit_ids':
-                silent = {int(unit) for unit in (value or [])}
+                units = {d.unit_id for d in self.drives}
+                if any(isinstance(u, (bool, float)) or u not in units for u in value):
+                    raise ValueError(f'silent_unit_ids: {list(value)} names a unit not on this '
+                                     f'line (its units: {sorted(units)})')
+                silent = set(value)
                 changes.append(lambda s=silent: [setattr(d, 'silent', d.unit_id in s)
                                                  for d in self.drives])
             elif name == 'refused':
