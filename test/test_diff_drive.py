@@ -710,21 +710,26 @@ def test_raised_timeouts_revive_neither_an_old_cmd_vel_nor_a_silent_wheel(make_r
         assert set(rig.left.commands[count:]) == {0.0}, what
         assert set(rig.right.commands[count:]) == {0.0}, what
 
-    rig = make_rig()
+    def set_parameter(name: str, value: float) -> None:
+        result = rig.node.set_parameters([Parameter(name, value=value)])[0]
+        assert result.successful, result.reason
+
+    rig = make_rig(cmd_vel_timeout=2.0)
     rig.twist = (0.5, 0.4)
     rig.wait_commands(4.0, 6.0, what='arc')
     rig.twist = None
-    rig.wait_commands(0.0, 0.0, 2.0, 'zeros after the timeout')
-    result = rig.node.set_parameters([Parameter('cmd_vel_timeout', value=60.0)])[0]
-    assert result.successful, result.reason
+    set_parameter('cmd_vel_timeout', 0.05)          # lowered: at once
+    rig.wait_commands(0.0, 0.0, 1.0, 'zeros after the lowered timeout')
+    set_parameter('cmd_vel_timeout', 2.0)           # raised again within the old 2 s
+    stays_stopped('cmd_vel_timeout lowered, then raised')
+    set_parameter('cmd_vel_timeout', 60.0)
     stays_stopped('cmd_vel_timeout raised')
 
     rig.twist = (0.5, 0.4)                   # a new cmd_vel: the new timeout
     rig.wait_commands(4.0, 6.0, what='the arc on a new cmd_vel')
     rig.right.publishing = False
     rig.wait_commands(0.0, 0.0, what='both wheels stopped')
-    result = rig.node.set_parameters([Parameter('wheel_status_timeout', value=60.0)])[0]
-    assert result.successful, result.reason
+    set_parameter('wheel_status_timeout', 60.0)
     stays_stopped('wheel_status_timeout raised')
     rig.right.publishing = True
     rig.wait_commands(4.0, 6.0, what='the arc again once the wheel reports')

@@ -59,7 +59,7 @@ def test_records_held_for_a_node_that_never_came_go_to_stderr(capsys):
     bridge = RosLogBridge()
     logging.getLogger('vfd_ros2.drives.modbus').warning('C02.04 refused')
     bridge.remove()
-    assert '[WARNING] C02.04 refused' in capsys.readouterr().err
+    assert '[WARN] C02.04 refused' in capsys.readouterr().err
 
 
 def test_records_after_the_context_shut_down_go_to_stderr(capfd):

@@ -121,6 +121,7 @@ def test_no_parameter_moves_the_wheel_on_a_command_taken_before_it(make_harness)
     h.wait_cycles(25)
     status = h.wait_status(lambda s: True, 1.0, 'a status')
     assert status.watchdog_tripped and not status.running, status
+    assert 'command_timeout 0.2 s' in status.stop_reason, status.stop_reason   # (its own)
     assert h.sim.speed_rpm == 0.0 and not h.sim.run_requested
 
     h.stream(0.5)                       # a new command counts for the new timeout

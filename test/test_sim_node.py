@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import uuid
+
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
@@ -146,3 +148,15 @@ def test_only_what_the_simulator_applies_at_run_time_is_described_writable(sim_n
     assert 'start-up' in node.describe_parameter('use_sim_time').description
     for name in set(names) - writable:
         assert not node.set_parameters([Parameter(name, value=True)])[0].successful, name
+
+
+def test_a_canopen_line_takes_silence_and_faults_too(sim_node):
+    """The CANopen twins had no unit_id: silent_unit_ids and ~/inject_fault failed on them."""
+    node, client = sim_node(profile='cia402_velocity', transport='canopen', interface='virtual',
+                            channel=f'simtest{uuid.uuid4().hex[:8]}', unit_ids=[1, 2])
+    value = ParameterValue(type=ParameterType.PARAMETER_INTEGER_ARRAY, integer_array_value=[2])
+    assert set_parameter(client, 'silent_unit_ids', value).successful
+    assert node.drives[1].silent and not node.drives[0].silent
+    reply = call(client, InjectFault, 'sim_drive/inject_fault',
+                 InjectFault.Request(unit_id=1, code=0x7500, subcode=0, latched=True))
+    assert reply.success, reply.message

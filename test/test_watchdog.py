@@ -80,6 +80,7 @@ def test_a_longer_timeout_does_not_lengthen_the_command_already_taken(clock):
     clock.advance(0.3)
     assert watchdog.expired
     assert watchdog.deadline == pytest.approx(1000.5)
+    assert watchdog.limit == pytest.approx(0.5)         # (what ~/status names)
 
 
 def test_a_shorter_timeout_applies_to_the_command_already_taken(clock):

@@ -32,6 +32,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -216,7 +217,7 @@ def run_agv_profile(commander: Commander, out=sys.stdout) -> bool:
             # the driver writes the stop, resets that fault at connect, and the wheel
             # follows cmd_vel again in the next step without a service call.
             print('-- right drive plugged back in', file=out)
-            _set_silent(commander, [0])
+            _set_silent(commander, [])
     return followed
 
 
@@ -400,6 +401,10 @@ def main(argv: list[str] | None = None) -> int:
         print('demo interrupted: stopping the drives and the nodes')
         return 130
     finally:
+        # The clean-up stops the drives: a second Ctrl-C must not cut it short (see
+        # ros/executable.py Interrupts; the nodes of --canopen run in this process).
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         commander.destroy_node()
         if in_process is not None:
             bus, nodes, executor = in_process
@@ -411,6 +416,8 @@ def main(argv: list[str] | None = None) -> int:
             _stop_ethercat_wheels(ethercat)
         rclpy.try_shutdown()
         _stop_processes(processes)
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, previous)
     return 0 if ok else 1
 
 

@@ -247,9 +247,10 @@ class DriveController:
             with self._lock:
                 self._rejected += 1
             return CommandOutcome.REJECTED
-        limit = self.config.max_velocity     # one immutable config, read once
-        clamped = min(max(velocity, -limit), limit)
         with self._lock:
+            # (the limit under the lock: reconfigure bounds the command taken with it)
+            limit = self.config.max_velocity
+            clamped = min(max(velocity, -limit), limit)
             # A new value, or the first command after a watchdog stop, preempts the
             # cycle; a repeated one waits for it, and so does any on a link whose
             # cycle applies the commands (CANopen SYNC).
@@ -343,6 +344,7 @@ class DriveController:
                 replan = True
         with self._lock:
             self.config = new
+            sooner = new.command_timeout < self._watchdog.timeout
             self._watchdog.timeout = new.command_timeout    # (never revives a stale command)
             # A lowered max_velocity bounds the command already taken too, at once: it
             # used to wait for the next command, and a wheel could run over the new
@@ -353,8 +355,8 @@ class DriveController:
                 not self.drive.transport.commands_keep_the_cycle
             self._velocity = bounded
             self._command_pending |= urgent
-        if urgent and self.request_preempt is not None:
-            self.request_preempt()
+        if (urgent or sooner) and self.request_preempt is not None:
+            self.request_preempt()      # (a loop also plans its watchdog stop anew)
         if replan:
             self.plan_host_loss()
         self.services.action_timeout = new.action_timeout
@@ -601,12 +603,12 @@ class DriveController:
 
     def _conditions(self) -> Conditions:
         with self._lock:
-            expired, age = self._watchdog.expired, self._watchdog.age
+            watchdog = self._watchdog
+            expired, age, limit = watchdog.expired, watchdog.age, watchdog.limit
         return Conditions(online=self.link.online, link_error=self.link.error,
                           link_closed=self.link.closed_reason, fault=self._reading.fault,
                           unsafe=self._reading.unsafe,
-                          watchdog_expired=expired, watchdog_age=age,
-                          command_timeout=self.config.command_timeout)
+                          watchdog_expired=expired, watchdog_age=age, command_timeout=limit)
 
     def _write_command(self) -> None:
         with self._lock:

@@ -57,6 +57,11 @@ class CommandWatchdog:
         return self._deadline is None or self._clock() > self._deadline
 
     @property
+    def limit(self) -> float:
+        """The timeout the newest command counts for (``timeout`` before the first)."""
+        return self._timeout if self._deadline is None else self._deadline - self._last
+
+    @property
     def deadline(self) -> float | None:
         """When the newest command expires (clock time), None before the first one."""
         return self._deadline

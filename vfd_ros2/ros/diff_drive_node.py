@@ -361,6 +361,11 @@ class DiffDriveNode(Node):
         self.limiter.limits = limits
         self.cmd_vel_timeout_s = float(values['cmd_vel_timeout'])
         self.wheel_status_timeout_s = float(values['wheel_status_timeout'])
+        # What came before holds for the shortest timeout set since, so that one lowered
+        # and raised again cannot revive what it timed out (as CommandWatchdog).
+        self.last_command_timeout_s = min(self.last_command_timeout_s, self.cmd_vel_timeout_s)
+        for wheel in (self.left, self.right, self.left_position, self.right_position):
+            wheel.timeout_s = min(wheel.timeout_s, self.wheel_status_timeout_s)
         if 'publish_rate' in changes:
             self.period_s = 1.0 / float(values['publish_rate'])
             self._tick_timer.timer_period_ns = round(self.period_s * 1e9)
@@ -503,7 +508,7 @@ class DiffDriveNode(Node):
             0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= timeout_s
         if not fresh and not self.timed_out and self.last_command is not None:
             self.get_logger().warning(
-                f'no valid cmd_vel for {self.cmd_vel_timeout_s} s: stopping the wheels')
+                f'no valid cmd_vel for {timeout_s:g} s: stopping the wheels')
         self.timed_out = not fresh
         # One wheel that does not follow (offline, faulted, stopped, ...) would turn the
         # robot about it at the commanded speed: both wheels are brought to zero

@@ -17,7 +17,6 @@ import os
 import signal
 import sys
 import threading
-import time
 import traceback
 from contextlib import contextmanager
 from typing import Callable, Iterable, Iterator
@@ -75,15 +74,16 @@ def _run_node(name: str, make_node: Callable[[], Node], args: list[str] | None,
         spin_until_shutdown(executor, node.context)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except CONFIGURATION_ERRORS as exc:
+    except Exception as exc:
         if rclpy.ok():
-            print(f'{name}: {exc}')
-            return 1
-    except Exception:
-        if rclpy.ok():
+            if isinstance(exc, CONFIGURATION_ERRORS):
+                print(f'{name}: {exc}')
+                return 1
             raise
         # Ctrl-C or SIGTERM while the node was being built: rclpy's handler shut the
-        # context down under it, and what it was building refused to go on.
+        # context down under it, and what it was building refused to go on (one line,
+        # not a traceback: a bug would still be seen).
+        print(f'{name}: while shutting down: {exc!r}', file=sys.stderr)
     finally:
         # The executor lets go of the nodes first: it must not be waiting on entities
         # that are being destroyed (the events executor raises then).
@@ -96,11 +96,6 @@ def _run_node(name: str, make_node: Callable[[], Node], args: list[str] | None,
     return 0
 
 
-#: s after the first Ctrl-C in which another is ignored: the clean-up writes the drives'
-#: stops (the loop's end: ~0.1 s for a drive, longer for a bus with silent drives)
-INTERRUPT_GRACE = 5.0
-
-
 class Interrupts:
     """Ctrl-C for an executable: the first ends the spin through rclpy only, quietly.
 
@@ -109,34 +104,26 @@ class Interrupts:
     KeyboardInterrupt in the main thread wherever it was, often inside a timer's
     callback, which the events executor then logged as a FATAL "Exception in
     'timers' callback" (diff_drive: one exit in eight). This handler, installed
-    before rclpy's, takes the first Ctrl-C quietly. Another in the next
-    INTERRUPT_GRACE seconds is ignored, with a word: a KeyboardInterrupt in the
-    clean-up skipped the drives' stops (a double tap; a launcher that signals the
-    processes its terminal already signalled). A later one raises KeyboardInterrupt,
-    so a clean-up that hangs can still be cut short.
+    before rclpy's, takes the first Ctrl-C quietly and ignores the others, with a
+    word: a KeyboardInterrupt in the clean-up skipped the drives' stops (a double
+    tap; a launcher that signals the processes its terminal already signalled), and
+    the loop threads are daemons, killed with the interpreter. Every wait of the
+    clean-up is bounded; SIGKILL is left for one that is not.
     """
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.first_at: float | None = None
+        self.interrupted = False
         self._told = False
 
-    @property
-    def interrupted(self) -> bool:
-        return self.first_at is not None
-
     def __call__(self, _signal_number: int, _frame: object) -> None:
-        now = time.monotonic()
-        if self.first_at is None:
-            self.first_at = now
-        elif now - self.first_at < INTERRUPT_GRACE:
-            if not self._told:
-                self._told = True
-                print(f'[WARN] [{self.name}]: shutting down: the drives are stopped first (a '
-                      f'Ctrl-C {INTERRUPT_GRACE:.0f} s after the first abandons that)',
-                      file=sys.stderr, flush=True)
-        else:
-            raise KeyboardInterrupt
+        if not self.interrupted:
+            self.interrupted = True
+        elif not self._told:
+            self._told = True
+            # (os.write: a print here could land inside the bridge's own stderr write)
+            os.write(2, f'[WARN] [{self.name}]: shutting down: the drives are stopped first; '
+                        'Ctrl-C again is ignored\n'.encode())
 
 
 @contextmanager
@@ -214,8 +201,10 @@ class RosLogBridge(logging.Handler):
             message += '\n' + ''.join(traceback.format_exception(*record.exc_info))
         level, log = record.levelno, self._log
         if not self._context.ok():
-            shown = ROS_LEVEL_NAMES.get(record.levelname, record.levelname)
-            print(f'[{shown}] [{log.name}]: {message}', file=sys.stderr, flush=True)
+            # (rcutils' severities are Python's levels: --log-level still applies)
+            if level >= int(log.get_effective_level()):
+                print(f'[{ros_level_name(record)}] [{log.name}]: {message}', file=sys.stderr,
+                      flush=True)
         elif level >= logging.CRITICAL:
             log.fatal(message)
         elif level >= logging.ERROR:
@@ -232,7 +221,7 @@ class RosLogBridge(logging.Handler):
         with self.lock:
             held, self._held = self._held, []
         for record in held:
-            print(f'[{record.levelname}] {record.getMessage()}', file=sys.stderr)
+            print(f'[{ros_level_name(record)}] {record.getMessage()}', file=sys.stderr)
         self._python_logger.removeHandler(self)
         self._python_logger.setLevel(self._kept[0])
         self._python_logger.propagate = self._kept[1]
@@ -240,6 +229,10 @@ class RosLogBridge(logging.Handler):
 
 #: Python's level names as ROS's console shows them
 ROS_LEVEL_NAMES = {'WARNING': 'WARN', 'CRITICAL': 'FATAL'}
+
+
+def ros_level_name(record: logging.LogRecord) -> str:
+    return ROS_LEVEL_NAMES.get(record.levelname, record.levelname)
 
 
 def non_ros_arguments(args: list[str] | None) -> list[str]:

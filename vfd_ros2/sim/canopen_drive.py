@@ -80,7 +80,7 @@ class SimulatedCanopenDrive:
         if profile.canopen is None:
             raise ParameterError(f'profile {profile.name} has no canopen section')
         self.profile = profile
-        self.node_id = node_id
+        self.node_id = self.unit_id = node_id   # (unit_id: as sim_drive names a line's drives)
         self.spec = profile.canopen
         self.objects = self.spec.selected(object_set)
         self.cia402 = self.objects.control is ControlStyle.CIA402

@@ -174,9 +174,10 @@ class SimDriveNode(Node):
                 raise ValueError(f'{name} cannot be unset ("[]" clears a list)')
             if name == 'silent_unit_ids':
                 units = {d.unit_id for d in self.drives}
-                if any(isinstance(u, (bool, float)) or u not in units for u in value):
-                    raise ValueError(f'silent_unit_ids: {list(value)} names a unit not on this '
-                                     f'line (its units: {sorted(units)})')
+                if isinstance(value, (str, int, float)) or any(
+                        isinstance(u, (bool, float)) or u not in units for u in value):
+                    raise ValueError(f'silent_unit_ids: {value!r} is not a list of the units '
+                                     f'on this line ({sorted(units)})')
                 silent = set(value)
                 changes.append(lambda s=silent: [setattr(d, 'silent', d.unit_id in s)
                                                  for d in self.drives])
