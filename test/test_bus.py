@@ -255,6 +255,39 @@ def test_shutdown_stops_every_drive_before_the_port_closes(agv_bus):
         assert not sim.run_requested and sim.last_command_value == 4     # decelerate-stop
 
 
+def test_a_bus_ending_stops_the_drives_that_answer_before_it_waits_on_silent_ones(tmp_path):
+    """Ctrl-C just after three drives went silent: each of their exchanges waits out the timeout.
+
+    Found by a re-check: the cycle under way gave way to nothing, and the stops
+    went out in bus order, the answering drive's last; the loop was not waited for
+    so long. One broadcast frame now stops them all first.
+    """
+    profile = load_profile('boneng_am')
+    sims = [SimulatedDrive(profile, unit) for unit in (1, 2, 3, 4)]
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(sims, port).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.timeout': 0.5, 'control_rate': 50.0},
+        'drives': {f'd{unit}': {'drive.profile': 'boneng_am', 'transport.unit_id': unit,
+                                'gear_ratio': 10.0, 'auto_enable': True,
+                                'command_timeout': 30.0, 'drive_comm_timeout': 0.0,
+                                'comm_loss_threshold': 100}     # (they stay online, slow)
+                   for unit in (1, 2, 3, 4)}}))
+    try:
+        bus.start()
+        wait_for(lambda: [c.command_velocity(1.0) for c in bus.controllers.values()] and
+                 all(sim.run_requested for sim in sims), 10.0, 'every drive running')
+        for sim in sims[:3]:
+            sim.silent = True
+        time.sleep(0.2)                     # a cycle now waits on their timeouts
+        bus.shutdown(timeout=1.2)           # three silent drives' stops alone take 1.5 s
+        assert not sims[3].run_requested, 'the answering drive was not stopped in time'
+    finally:
+        bus.shutdown()
+        line.stop()
+
+
 def test_bus_file_is_validated():
     good = bus_document('/dev/null', '/x')
     assert [d.settings['transport.unit_id'] for d in parse_bus_config(good).drives] == [1, 2]

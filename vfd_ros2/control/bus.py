@@ -291,6 +291,8 @@ class Bus:
         self._command_waiting = False           # every command is written now
         self._plan_watchdog_check()
         for controller in controllers:          # commands first, for every drive ...
+            if self._ending():
+                return
             # A watchdog may expire mid-phase: then all drives at once, not in turn.
             self._broadcast_stop_if_all_tripped()
             cost = candidates.get(controller)
@@ -315,8 +317,18 @@ class Bus:
             transport.end_command_burst()
         self._plan_watchdog_check()             # drives may have started running
         for controller in controllers:          # ... then the slower status polls
+            if self._ending():
+                return
             controller.poll_phase()
         self._plan_keep_alive(controllers)
+
+    def _ending(self) -> bool:
+        """Whether the loop is asked to end: the rest of the cycle gives way to the stops.
+
+        A silent drive costs its timeouts in every exchange: the cycle under way
+        when Ctrl-C came held back the running drives' stops by as many (re-check).
+        """
+        return self._loop is not None and self._loop.stopping
 
     def _serving(self) -> Sequence[DriveController]:
         """Return the drives this thread serves: all but one connecting beside the cycle.
@@ -456,29 +468,41 @@ class Bus:
         and is verified by its status. Only where every drive on the line shares
         the same stop writes, so no drive gets another's meaning of a register.
         """
-        transport = self.transport
-        if not getattr(transport, 'broadcasts', False) or len(self.controllers) < 2:
-            return
+        if not getattr(self.transport, 'broadcasts', False) or len(self.controllers) < 2:
+            return              # (checked first: this runs before every drive's command)
         horizon = self._clock() + 0.002
         if horizon < self._watchdog_check_at:
             return              # no running drive's watchdog expires this soon
         running = [c for c in self.controllers.values() if c.runs]
         if len(running) < 2 or not all(c.watchdog_due(horizon) for c in running):
             return
-        plans = {c.drive.stop_broadcast() if hasattr(c.drive, 'stop_broadcast') else ()
-                 for c in self.controllers.values()}
-        if len(plans) != 1 or not (plan := plans.pop()):
-            return
         key = tuple(sorted(c.preempt_at() or 0.0 for c in running))
         if key == self._broadcast_for:
             return          # this trip was broadcast already
-        self._broadcast_for = key
+        self._broadcast_for = key       # (once, sent or not: a failure is not retried)
+        if self._broadcast_stop():
+            self.broadcast_stops += 1
+
+    def _broadcast_stop(self) -> bool:
+        """Write the stop to every drive of the line in one unanswered frame; return if sent.
+
+        Only where the line broadcasts and every drive on it shares the same stop
+        writes, so no drive gets another's meaning of a register.
+        """
+        transport = self.transport
+        if not getattr(transport, 'broadcasts', False) or len(self.controllers) < 2:
+            return False
+        plans = {c.drive.stop_broadcast() if hasattr(c.drive, 'stop_broadcast') else ()
+                 for c in self.controllers.values()}
+        if len(plans) != 1 or not (plan := plans.pop()):
+            return False
         try:
             for address, value in plan:
                 transport.broadcast_register(address, value)
-            self.broadcast_stops += 1
         except TransportError as exc:
             log.warning('bus %s: broadcast stop failed: %s', self.config.name, exc)
+            return False
+        return True
 
     def preempt_at(self) -> float | None:
         """Return the earliest moment a drive's command watchdog expires (see CycleLoop)."""
@@ -491,7 +515,12 @@ class Bus:
         # waited for (it wrote its drive's stop first), and its drive finished too.
         # One still running after the wait stays noted, so a restarted loop does not
         # start a second connect of the same drive beside it.
-        for controller in self._serving():
+        # A drive gone silent costs its timeouts, and the loop thread may not outlive
+        # them all (shutdown waits a few seconds): one broadcast frame reaches every
+        # drive at once, and those that answered last come first.
+        if any(controller.runs for controller in self._serving()):
+            self._broadcast_stop()
+        for controller in sorted(self._serving(), key=lambda c: not c.link.answering):
             controller.finish()
         beside = self._beside
         if beside is not None:

@@ -104,6 +104,11 @@ class LinkSupervisor:
             log.warning('%s was offline %d times more in the last %.0f s: %s', self.name,
                         untold.repeats, untold.seconds, untold.kind)
 
+    @property
+    def answering(self) -> bool:
+        """Online and no exchange failed since the last good cycle."""
+        return self.online and self._failed_cycles == 0 and not self._failed_this_cycle
+
     def cycle_ok(self) -> None:
         self._failed_cycles = 0
         if self._offline_log.untold:

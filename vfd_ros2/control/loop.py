@@ -119,6 +119,11 @@ class CycleLoop:
         if self._preempt is not None:
             self._preempt_requested.set()
 
+    @property
+    def stopping(self) -> bool:
+        """Whether ``stop`` was asked: a step may end early, ``finish`` comes next."""
+        return self._stop.is_set()
+
     def set_period(self, period: float) -> None:
         """Change the period from any thread; a cycle waiting longer is brought forward."""
         self.period = period

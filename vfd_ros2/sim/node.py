@@ -226,9 +226,16 @@ class SimDriveNode(Node):
         return response
 
     def _activity(self) -> int:
-        """Return the requests (Modbus) or frames (CANopen) the simulated drives received."""
+        """Return the requests (Modbus) or frames (CANopen) the simulated drives received.
+
+        On an RTU line, also those for silent or absent drives, and garbage: a host
+        still trying a silent drive is not quiet (the line closed under a bus still
+        writing its running drives' stops).
+        """
+        line = getattr(self.line, 'stats', None)
         return sum(getattr(d, 'requests', 0) + getattr(d, 'rpdos_received', 0) +
-                   getattr(d, 'heartbeat_events', 0) for d in self.drives)
+                   getattr(d, 'heartbeat_events', 0) for d in self.drives) + \
+            getattr(line, 'frames', 0) + getattr(line, 'crc_errors', 0)
 
     def serve_until_quiet(self, grace: float, quiet: float = 0.5) -> float:
         """Keep serving until the host has been silent for ``quiet`` s (at most ``grace`` s).
