@@ -255,25 +255,30 @@ def test_shutdown_stops_every_drive_before_the_port_closes(agv_bus):
         assert not sim.run_requested and sim.last_command_value == 4     # decelerate-stop
 
 
-def test_a_bus_ending_stops_the_drives_that_answer_before_it_waits_on_silent_ones(tmp_path):
+@pytest.mark.parametrize('last_profile', ['boneng_am', 'kinco_ec'])
+def test_a_bus_ending_stops_the_drives_that_answer_before_it_waits_on_silent_ones(
+        tmp_path, last_profile):
     """Ctrl-C just after three drives went silent: each of their exchanges waits out the timeout.
 
-    Found by a re-check: the cycle under way gave way to nothing, and the stops
+    Found by re-checks: the cycle under way gave way to nothing, and the stops
     went out in bus order, the answering drive's last; the loop was not waited for
-    so long. One broadcast frame now stops them all first.
+    so long. Now one broadcast frame stops them all first where they share the
+    stop writes (all boneng_am), and a hurried pass (where they do not: a Kinco
+    last) reaches the answering drive before the silent ones' timeouts.
     """
-    profile = load_profile('boneng_am')
-    sims = [SimulatedDrive(profile, unit) for unit in (1, 2, 3, 4)]
+    profiles = ['boneng_am'] * 3 + [last_profile]
+    sims = [SimulatedDrive(load_profile(name), unit)
+            for unit, name in enumerate(profiles, start=1)]
     port = str(tmp_path / 'rs485')
-    line = SimulatedRtuLine(sims, port).start()
+    line = SimulatedRtuLine(sims, port, stopbits=2).start()     # (the Kinco's factory 8N2)
     bus = Bus(parse_bus_config({
-        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port,
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.stopbits': 2,
                 'transport.timeout': 0.5, 'control_rate': 50.0},
-        'drives': {f'd{unit}': {'drive.profile': 'boneng_am', 'transport.unit_id': unit,
+        'drives': {f'd{unit}': {'drive.profile': name, 'transport.unit_id': unit,
                                 'gear_ratio': 10.0, 'auto_enable': True,
                                 'command_timeout': 30.0, 'drive_comm_timeout': 0.0,
                                 'comm_loss_threshold': 100}     # (they stay online, slow)
-                   for unit in (1, 2, 3, 4)}}))
+                   for unit, name in enumerate(profiles, start=1)}}))
     try:
         bus.start()
         wait_for(lambda: [c.command_velocity(1.0) for c in bus.controllers.values()] and
@@ -283,6 +288,35 @@ def test_a_bus_ending_stops_the_drives_that_answer_before_it_waits_on_silent_one
         time.sleep(0.2)                     # a cycle now waits on their timeouts
         bus.shutdown(timeout=1.2)           # three silent drives' stops alone take 1.5 s
         assert not sims[3].run_requested, 'the answering drive was not stopped in time'
+    finally:
+        bus.shutdown()
+        line.stop()
+
+
+def test_drives_slower_than_a_hurried_pass_still_get_their_stop(tmp_path):
+    """Replies that begin after HURRIED_REPLY: the stop is asked again with the timeout."""
+    from vfd_ros2.transports.modbus import HURRIED_REPLY
+    profiles = ('boneng_am', 'kinco_ec')           # (no broadcast: each stop on its own)
+    sims = [SimulatedDrive(load_profile(name), unit)
+            for unit, name in enumerate(profiles, start=1)]
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(sims, port, stopbits=2, emulate_wire_time=True,
+                            response_delay=2 * HURRIED_REPLY).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port, 'transport.stopbits': 2,
+                'transport.timeout': 0.5, 'control_rate': 5.0},
+        'drives': {f'd{unit}': {'drive.profile': name, 'transport.unit_id': unit,
+                                'gear_ratio': 10.0, 'auto_enable': True,
+                                'command_timeout': 30.0, 'drive_comm_timeout': 0.0}
+                   for unit, name in enumerate(profiles, start=1)}}))
+    try:
+        bus.start()
+        wait_for(lambda: [c.command_velocity(1.0) for c in bus.controllers.values()] and
+                 all(sim.run_requested for sim in sims), 20.0, 'every drive running')
+        timeouts = bus.link_stats().timeouts
+        bus.shutdown()
+        assert not any(sim.run_requested for sim in sims)
+        assert bus.link_stats().timeouts > timeouts     # (the hurried pass was too quick)
     finally:
         bus.shutdown()
         line.stop()

@@ -24,7 +24,7 @@ from ..transports import load_transport_class
 from ..transports.base import Transport, TransportStats
 from .controller import DriveController
 from .factory import build_controller, build_transport, link_settings
-from .loop import CycleLoop, RateWatch
+from .loop import SHUTDOWN_WAIT, CycleLoop, RateWatch
 from .settings import SETTINGS
 
 log = logging.getLogger(__name__)
@@ -180,6 +180,7 @@ class Bus:
         for controller in self.controllers.values():
             controller.plan_host_loss(self.addressing_interval)
         self._loop: CycleLoop | None = None
+        self._stepping: CycleLoop | None = None      # the last started (see _ending)
         self._lock = threading.Lock()
         self._window: tuple[float, float, int] = (clock(), 0.0, 0)  # when, wire s, transactions
         self._rate = RateWatch(clock)
@@ -327,8 +328,10 @@ class Bus:
 
         A silent drive costs its timeouts in every exchange: the cycle under way
         when Ctrl-C came held back the running drives' stops by as many (re-check).
+        (The loop that runs the steps: ``shutdown`` forgets it even if it outlives
+        the wait.)
         """
-        return self._loop is not None and self._loop.stopping
+        return self._stepping is not None and self._stepping.stopping
 
     def _serving(self) -> Sequence[DriveController]:
         """Return the drives this thread serves: all but one connecting beside the cycle.
@@ -515,13 +518,21 @@ class Bus:
         # waited for (it wrote its drive's stop first), and its drive finished too.
         # One still running after the wait stays noted, so a restarted loop does not
         # start a second connect of the same drive beside it.
-        # A drive gone silent costs its timeouts, and the loop thread may not outlive
-        # them all (shutdown waits a few seconds): one broadcast frame reaches every
-        # drive at once, and those that answered last come first.
-        if any(controller.runs for controller in self._serving()):
+        # A drive gone silent costs its timeouts, and the drives after it keep running
+        # meanwhile: one broadcast frame reaches every drive at once (where they share
+        # the stop writes), then a hurried pass (a reply must begin within what a
+        # healthy drive takes), those that answered last first; a drive that did not
+        # take its stop then is asked again with its whole timeout.
+        serving = self._serving()
+        if any(controller.runs for controller in serving):
             self._broadcast_stop()
-        for controller in sorted(self._serving(), key=lambda c: not c.link.answering):
-            controller.finish()
+        stopped = set()
+        for controller in sorted(serving, key=lambda c: not c.link.answering):
+            with controller.drive.transport.hurried():
+                if controller.write_stop():
+                    stopped.add(controller)
+        for controller in serving:
+            controller.finish(stop=controller not in stopped)
         beside = self._beside
         if beside is not None:
             beside[1].join(CONNECT_JOIN_TIMEOUT)
@@ -532,19 +543,27 @@ class Bus:
 
     def start(self) -> None:
         if self._loop is None:
-            self._loop = CycleLoop(f'bus {self.config.name}', self.period, self.step,
-                                   self.finish, self._clock, preempt=self.preempt,
-                                   preempt_at=self.preempt_at,
-                                   priority=int(self.config.settings.get('realtime_priority', 0)))
+            self._loop = self._stepping = CycleLoop(
+                f'bus {self.config.name}', self.period, self.step, self.finish, self._clock,
+                preempt=self.preempt, preempt_at=self.preempt_at,
+                priority=int(self.config.settings.get('realtime_priority', 0)))
             for controller in self.controllers.values():
                 controller.open_for_actions()
             self._loop.start()
             for controller in self.controllers.values():
                 controller.loop_notes = self._loop.notes
 
-    def shutdown(self, timeout: float = 3.0) -> None:
+    def shutdown(self, timeout: float | None = None) -> None:
+        """Stop the loop; every drive is commanded to stop before the links close.
+
+        Waits (by default) as long as those stops can take with every drive silent:
+        a loop thread given up on dies with the process, and the drives it had not
+        reached yet would keep running (re-check: 6 silent drives of 8 at 0.6 s,
+        and the 2 that answered were never stopped in 3 s).
+        """
         if self._loop is not None:
-            self._loop.stop(timeout)
+            self._loop.stop(timeout if timeout is not None else SHUTDOWN_WAIT + sum(
+                c.drive.transport.failed_exchange_seconds() for c in self._all))
             self._loop = None
 
     def link_stats(self) -> TransportStats:

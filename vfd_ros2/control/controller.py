@@ -38,7 +38,7 @@ from ..protocol.scaling import SpeedUnit, VelocityScaling
 from .actions import NOT_SERVED, ActionQueue, ServiceActions
 from .joint import JointTracker, joint_config
 from .link import LinkSupervisor
-from .loop import CycleLoop
+from .loop import SHUTDOWN_WAIT, CycleLoop
 from .permit import Conditions, Intent, decide
 from .state import STATUS_NOT_READ, ActionResult, CommandOutcome, DriveState, RunState
 from .watchdog import CommandWatchdog
@@ -422,10 +422,15 @@ class DriveController:
             self._loop.start()
             self.loop_notes = self._loop.notes
 
-    def shutdown(self, timeout: float = 2.0) -> None:
-        """Stop the loop; the drive is commanded to stop before the link closes."""
+    def shutdown(self, timeout: float | None = None) -> None:
+        """Stop the loop; the drive is commanded to stop before the link closes.
+
+        Waits (by default) as long as that stop can take with the drive silent: a
+        loop thread given up on dies with the process (see Bus.shutdown).
+        """
         if self._loop is not None:
-            self._loop.stop(timeout)
+            self._loop.stop(timeout if timeout is not None else
+                            SHUTDOWN_WAIT + self.drive.transport.failed_exchange_seconds())
             self._stopped_loop_errors += self._loop.errors
             self._loop = None
 
@@ -545,9 +550,21 @@ class DriveController:
             self._actions.fail_all(f'drive offline: {self.link.error or "not connected"}{held}')
         self._publish_state()
 
-    def finish(self) -> None:
-        """End of the loop: command the drive to stop, then close the link."""
-        if self.link.online:
+    def write_stop(self) -> bool:
+        """Write the stop now, quietly; return whether the drive took it (see Bus.finish)."""
+        if not self.link.online:
+            return False
+        try:
+            self.drive.forget_state()
+            self.drive.apply(0.0, run=False, idle_action='stop')
+            self.drive.transport.end_command_burst()
+        except VfdError:
+            return False
+        return True
+
+    def finish(self, stop: bool = True) -> None:
+        """End of the loop: command the drive to stop (unless written already), close the link."""
+        if stop and self.link.online:
             try:
                 # Whatever the driver believes the drive is doing: write the stop.
                 self.drive.forget_state()

@@ -9,8 +9,9 @@ values (registers, objects) with bounded waits. The drive layer
 from __future__ import annotations
 
 import abc
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar, Iterator, Mapping
 
 from ..errors import TransportError
 
@@ -123,6 +124,16 @@ class Transport(abc.ABC):
     def failed_exchange_seconds(self) -> float:
         """Time one exchange with a silent drive occupies the link (its timeout)."""
         return float(getattr(self, 'timeout', 0.1))
+
+    @contextmanager
+    def hurried(self) -> Iterator[None]:
+        """Within it, wait for a reply only as long as a healthy drive takes to begin one.
+
+        For the pass of stops at a bus's end: a drive gone silent costs its whole
+        timeout (raised for slow drives), and the drives after it keep running
+        meanwhile. Where the link has no such wait to shorten, nothing changes.
+        """
+        yield
 
     @property
     def commands_keep_the_cycle(self) -> bool:

@@ -14,7 +14,8 @@ import logging
 import select
 import socket
 import struct
-from typing import Any, Callable, Mapping, NamedTuple
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Mapping, NamedTuple
 
 from . import modbus_library  # noqa: F401 - the pymodbus version check, before pymodbus
 
@@ -235,6 +236,10 @@ class _PymodbusTransport(_ModbusTransport):
 #: s per exchange for the slave's and the host's turnaround (a slave's response time
 #: is not part of the wire time; drives answer within ~1 ms, the host adds ~0.3 ms)
 TURNAROUND = 0.0015
+#: s a reply may take to begin in a hurried pass (``hurried``: the stops at a bus's end),
+#: against the transport's timeout: drives answer within milliseconds; a slower one is
+#: asked again with the whole timeout after the others
+HURRIED_REPLY = 0.05
 
 
 class _RtuSettings:
@@ -381,6 +386,15 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
     @property
     def late_reply_guard(self) -> float:
         return self._link.late_reply_guard
+
+    @contextmanager
+    def hurried(self) -> Iterator[None]:
+        link, kept = self._link, self._link.timeout
+        link.timeout = min(kept, HURRIED_REPLY)
+        try:
+            yield
+        finally:
+            link.timeout = kept
 
     def _count_discarded(self, unit: int | None, kind: str) -> None:
         self.count(unit, 'late_replies' if kind == 'late' else 'bad_frames')
