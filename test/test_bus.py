@@ -293,6 +293,30 @@ def test_a_bus_ending_stops_the_drives_that_answer_before_it_waits_on_silent_one
         line.stop()
 
 
+@pytest.mark.parametrize('allowed', [True, False])
+def test_broadcast_stops_can_be_turned_off_for_a_line_shared_with_other_devices(
+        tmp_path, allowed):
+    profile = load_profile('boneng_am')
+    sims = [SimulatedDrive(profile, unit) for unit in (1, 2)]
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(sims, port).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port,
+                'transport.broadcast_stops': allowed},
+        'drives': {f'd{unit}': {'drive.profile': 'boneng_am', 'transport.unit_id': unit}
+                   for unit in (1, 2)}}))
+    try:
+        heard = [sim.requests for sim in sims]
+        assert bus._broadcast_stop() is allowed          # noqa: SLF001
+        wait_for(lambda: [sim.requests for sim in sims] != heard or not allowed, 2.0,
+                 'the broadcast heard by the drives')
+        assert ([sim.requests for sim in sims] != heard) is allowed
+    finally:
+        for transport in bus.transports:    # (no loop ran: nothing else closes them)
+            transport.close()
+        line.stop()
+
+
 def test_drives_slower_than_a_hurried_pass_still_get_their_stop(tmp_path):
     """Replies that begin after HURRIED_REPLY: the stop is asked again with the timeout."""
     from vfd_ros2.transports.modbus import HURRIED_REPLY

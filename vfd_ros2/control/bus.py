@@ -471,7 +471,7 @@ class Bus:
         and is verified by its status. Only where every drive on the line shares
         the same stop writes, so no drive gets another's meaning of a register.
         """
-        if not getattr(self.transport, 'broadcasts', False) or len(self.controllers) < 2:
+        if not getattr(self.transport, 'broadcast_stops', False) or len(self.controllers) < 2:
             return              # (checked first: this runs before every drive's command)
         horizon = self._clock() + 0.002
         if horizon < self._watchdog_check_at:
@@ -489,11 +489,12 @@ class Bus:
     def _broadcast_stop(self) -> bool:
         """Write the stop to every drive of the line in one unanswered frame; return if sent.
 
-        Only where the line broadcasts and every drive on it shares the same stop
-        writes, so no drive gets another's meaning of a register.
+        Only where the line broadcasts, ``transport.broadcast_stops`` allows it, and
+        every drive on it shares the same stop writes, so no drive gets another's
+        meaning of a register.
         """
         transport = self.transport
-        if not getattr(transport, 'broadcasts', False) or len(self.controllers) < 2:
+        if not getattr(transport, 'broadcast_stops', False) or len(self.controllers) < 2:
             return False
         plans = {c.drive.stop_broadcast() if hasattr(c.drive, 'stop_broadcast') else ()
                  for c in self.controllers.values()}

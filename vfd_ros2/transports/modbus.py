@@ -268,6 +268,11 @@ class _RtuSettings:
         TransportParameter('broadcast_turnaround', 0.02,
                            's of silence after a broadcast write, for the slaves to process it',
                            0.0, 1.0),
+        TransportParameter('broadcast_stops', True,
+                           'a bus stops all its drives in one broadcast frame (unit 0) where '
+                           'they share the stop writes (all watchdogs tripped, the end); false '
+                           'on a line shared with other Modbus devices, which would execute '
+                           'the same writes'),
     )
     port: str
     baudrate: int
@@ -294,7 +299,8 @@ class _RtuSettings:
                    late_reply_guard=guard if guard >= 0 else None,
                    low_latency=bool(settings.get('low_latency', True)),
                    echo=bool(settings.get('echo', False)),
-                   broadcast_turnaround=float(settings.get('broadcast_turnaround', 0.02)))
+                   broadcast_turnaround=float(settings.get('broadcast_turnaround', 0.02)),
+                   broadcast_stops=bool(settings.get('broadcast_stops', True)))
 
     @property
     def description(self) -> str:
@@ -346,9 +352,10 @@ class ModbusRtuTransport(_RtuSettings, _ModbusTransport):
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  frame_gap: float | None = None, late_reply_guard: float | None = None,
                  low_latency: bool = True, echo: bool = False,
-                 broadcast_turnaround: float = 0.02) -> None:
+                 broadcast_turnaround: float = 0.02, broadcast_stops: bool = True) -> None:
         super().__init__()
         self.broadcast_turnaround = broadcast_turnaround
+        self.broadcast_stops = broadcast_stops
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
@@ -502,7 +509,7 @@ class PymodbusRtuTransport(_RtuSettings, _PymodbusTransport):
                  stopbits: int = 1, bytesize: int = 8, timeout: float = 0.1,
                  frame_gap: float | None = None, late_reply_guard: float | None = None,
                  low_latency: bool = True, echo: bool = False,
-                 broadcast_turnaround: float = 0.02) -> None:
+                 broadcast_turnaround: float = 0.02, broadcast_stops: bool = True) -> None:
         self.port = port
         self.baudrate = baudrate
         self.parity = parity
