@@ -129,6 +129,36 @@ def test_no_parameter_moves_the_wheel_on_a_command_taken_before_it(make_harness)
                   'running again on a new command')
 
 
+def test_a_command_from_before_a_stop_or_a_fault_does_not_resume_the_drive(make_harness):
+    """~/enable after ~/stop, ~/reset_fault after a fault: only a later command moves it.
+
+    Outside audit: with a long command_timeout, the command taken before the
+    stop or the fault was still fresh, and the wheel ran on it again.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'command_timeout': 30.0})
+    h.stream(2.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.02, 6.0,
+                  'motor at 2 rad/s')
+    h.stop_stream()
+    for service in ('stop', 'disable'):
+        assert h.trigger(service).success
+        reply = h.trigger('enable')
+        h.wait_cycles(25)
+        status = h.wait_status(lambda s: True, 1.0, 'a status')
+        assert not status.running and status.watchdog_tripped, (service, reply, status)
+        assert not h.sim.run_requested, service
+    h.sim.inject_fault(9, 1)                # (its cause gone: ~/reset_fault clears it)
+    h.wait_status(lambda s: s.fault, 3.0, 'the fault')
+    reply = h.trigger('reset_fault')
+    assert reply.success, reply.message
+    h.wait_cycles(25)
+    status = h.wait_status(lambda s: True, 1.0, 'a status')
+    assert not status.running and status.watchdog_tripped, status
+    h.stream(1.0)                           # a new command: runs
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 6.0,
+                  'running on a new command')
+
+
 def test_drive_node_command_timeout_and_rates_are_applied(make_harness):
     # No drive-side comm-loss timeout: the rate is free (see the next test for one).
     h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.0})

@@ -144,6 +144,7 @@ def test_the_watchdog_reason_says_commands_from_before_the_connect_are_forgotten
     now = Conditions(online=True, link_error='', link_closed='', fault=NO_FAULT, unsafe='',
                      watchdog_expired=True, watchdog_age=math.inf, command_timeout=0.5)
     state, reason = decide(Intent(enabled=True), now)
-    assert state is RunState.WATCHDOG and reason.endswith('(none since the drive connected)')
+    assert state is RunState.WATCHDOG and \
+        reason.endswith('(none since the drive connected or was stopped)')
     state, reason = decide(Intent(enabled=True), now._replace(watchdog_age=0.73))
     assert reason.endswith('(last 0.73 s ago)')

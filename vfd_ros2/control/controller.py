@@ -52,6 +52,9 @@ NEAR_TRIP = 0.75
 #: the interval a re-plan is sized for, as a multiple of the gap that prompted it
 ADDRESSING_HEADROOM = 1.25
 
+#: the states a service or a transition ends, which forget the commands taken before them
+FORGETS_COMMANDS = frozenset({RunState.STOPPED, RunState.DISABLED, RunState.FAULT})
+
 #: what ``DriveController.reconfigure`` may change while the loop runs
 LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
                          'action_timeout', 'stop_timeout', 'shown_period'})
@@ -140,6 +143,7 @@ class DriveController:
         self._clock = clock
         self._lock = threading.Lock()
         self._watchdog = CommandWatchdog(config.command_timeout, clock)
+        self._last_run_state: RunState | None = None   # (see _publish_state)
         self._velocity = 0.0
         self._setpoints: dict[str, int] = {}
         self._written_setpoints: dict[str, int] = {}
@@ -926,6 +930,14 @@ class DriveController:
         with self._lock:
             rejected, clamped = self._rejected, self._clamped
         run_state, reason = decide(self.intent, conditions)
+        if run_state in FORGETS_COMMANDS and run_state is not self._last_run_state:
+            # A command from before a ~/stop, a fault or a lifecycle deactivate, still
+            # within a long command_timeout, ran the wheel again at ~/enable,
+            # ~/reset_fault or activate (outside audit): only those taken since the
+            # hold began count (a planner still streaming then still wants motion).
+            with self._lock:
+                self._watchdog.reset()
+        self._last_run_state = run_state
         commanded = self._velocity if run_state is RunState.RUNNING else 0.0
         if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):
             # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).

@@ -61,12 +61,14 @@ def decide(intent: Intent, now: Conditions) -> tuple[RunState, str]:
     if not intent.enabled:
         return RunState.DISABLED, 'disabled: call ~/enable'
     if intent.stopped:
-        return RunState.STOPPED, 'stopped by ~/stop: call ~/enable to resume'
+        by = '~/stop' if intent.asked_stop else 'a lifecycle deactivate'
+        return RunState.STOPPED, f'stopped by {by}: call ~/enable to resume'
     if now.unsafe:
         return RunState.BLOCKED, now.unsafe
     if now.watchdog_expired:
-        # (commands from before a connect are forgotten: none may resume the drive)
-        age = 'none since the drive connected' if math.isinf(now.watchdog_age) else \
+        # (commands from before a connect or a stop are forgotten: none may resume it)
+        age = 'none since the drive connected or was stopped' \
+            if math.isinf(now.watchdog_age) else \
             f'last {now.watchdog_age:.2f} s ago'
         return RunState.WATCHDOG, (f'no velocity command within command_timeout '
                                    f'{now.command_timeout:g} s ({age})')
