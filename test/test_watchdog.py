@@ -148,3 +148,15 @@ def test_the_watchdog_reason_says_commands_from_before_the_connect_are_forgotten
         reason.endswith('(none since the drive connected or was stopped)')
     state, reason = decide(Intent(enabled=True), now._replace(watchdog_age=0.73))
     assert reason.endswith('(last 0.73 s ago)')
+
+
+def test_a_stop_reason_names_who_stopped_the_drive():
+    """A lifecycle deactivate's hold said "stopped by ~/stop" (outside audit)."""
+    from vfd_ros2.control.permit import Conditions, Intent, decide
+    from vfd_ros2.profiles import NO_FAULT
+    now = Conditions(online=True, link_error='', link_closed='', fault=NO_FAULT, unsafe='',
+                     watchdog_expired=False, watchdog_age=0.1, command_timeout=0.5)
+    assert decide(Intent(enabled=True, stopped=True, asked_stop=True), now)[1] == \
+        'stopped by ~/stop: call ~/enable to resume'
+    assert decide(Intent(enabled=True, stopped=True), now)[1] == \
+        'stopped by a lifecycle deactivate: call ~/enable to resume'
