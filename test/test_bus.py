@@ -346,6 +346,62 @@ def test_drives_slower_than_a_hurried_pass_still_get_their_stop(tmp_path):
         line.stop()
 
 
+def test_a_command_taken_after_a_stop_is_asked_counts_at_the_enable(tmp_path):
+    """The commands before ~/stop are forgotten as it is asked, not a cycle later.
+
+    Re-check: forgotten at the loop's next decision, a command sent between the
+    ~/stop and that cycle was lost too, and a planner that sends on change stood.
+    """
+    sims = [SimulatedDrive(load_profile('boneng_am'), 1)]
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(sims, port).start()
+    bus = Bus(parse_bus_config({
+        'bus': {'transport.type': 'modbus_rtu', 'transport.port': port, 'control_rate': 50.0},
+        'drives': {'d1': {'drive.profile': 'boneng_am', 'transport.unit_id': 1,
+                          'gear_ratio': 10.0, 'auto_enable': True, 'command_timeout': 30.0}}}))
+    controller = bus.controllers['d1']
+    try:
+        bus.start()
+        wait_for(lambda: controller.command_velocity(1.0) and sims[0].run_requested, 10.0,
+                 'running')
+        stopped = controller.submit('stop')
+        assert stopped.result(10.0).success
+        assert controller.submit('enable').result(10.0).success
+        time.sleep(0.3)
+        assert not sims[0].run_requested         # the command from before: forgotten
+        stopped = controller.submit('stop')
+        controller.command_velocity(1.0)         # taken once the stop is asked
+        assert stopped.result(10.0).success and controller.submit('enable').result(10.0).success
+        wait_for(lambda: sims[0].run_requested, 3.0, 'running on the command taken since')
+    finally:
+        bus.shutdown()
+        line.stop()
+
+
+def test_a_late_reply_ends_its_units_guard_wherever_it_comes(tmp_path):
+    """A reply too late for a hurried pass, discarded during another unit's exchange.
+
+    Re-check: its unit's guard (the whole timeout) still held its stop's retry back.
+    """
+    from vfd_ros2.transports.modbus import HURRIED_REPLY, ModbusRtuTransport
+    sims = [SimulatedDrive(load_profile('boneng_am'), unit) for unit in (1, 2)]
+    port = str(tmp_path / 'rs485')
+    line = SimulatedRtuLine(sims, port, emulate_wire_time=True,
+                            response_delay=1.5 * HURRIED_REPLY).start()
+    transport = ModbusRtuTransport(port, 115200, timeout=3.0)
+    try:
+        with transport.hurried():
+            with pytest.raises(CommTimeout):
+                transport.read_registers(1, 0x2100, 1)
+        transport.read_registers(2, 0x2100, 1)      # unit 1's late reply comes meanwhile
+        started = time.monotonic()
+        transport.read_registers(1, 0x2100, 1)
+        assert time.monotonic() - started < 1.0      # not after unit 1's 3 s guard
+    finally:
+        transport.close()
+        line.stop()
+
+
 def test_bus_file_is_validated():
     good = bus_document('/dev/null', '/x')
     assert [d.settings['transport.unit_id'] for d in parse_bus_config(good).drives] == [1, 2]

@@ -563,7 +563,7 @@ class Bus:
         and the 2 that answered were never stopped in 3 s).
         """
         if self._loop is not None:
-            self._loop.stop(timeout if timeout is not None else SHUTDOWN_WAIT + sum(
+            self._loop.stop(timeout if timeout is not None else SHUTDOWN_WAIT + 2 * sum(
                 c.drive.transport.failed_exchange_seconds() for c in self._all))
             self._loop = None
 

@@ -52,8 +52,8 @@ NEAR_TRIP = 0.75
 #: the interval a re-plan is sized for, as a multiple of the gap that prompted it
 ADDRESSING_HEADROOM = 1.25
 
-#: the states a service or a transition ends, which forget the commands taken before them
-FORGETS_COMMANDS = frozenset({RunState.STOPPED, RunState.DISABLED, RunState.FAULT})
+#: the service actions that forget the commands taken before them (see forget_commands)
+FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
 LIVE_FIELDS = frozenset({'command_timeout', 'max_velocity', 'cycle_period', 'auto_enable',
@@ -402,6 +402,8 @@ class DriveController:
             future.set_result(ActionResult(False, str(exc)))
             return future
         latched = self.services.latch(name) if latch else ''
+        if name in FORGETTING_ACTIONS:
+            self.forget_commands()
         if latched and (not self.link.online or not self._actions.serving):
             # Not verified (nothing to ask), but held: the drive stays stopped when it
             # comes back, whatever commands keep coming.
@@ -412,6 +414,17 @@ class DriveController:
                                                   'the link returns; ~/enable resumes'))
             return future
         return self._actions.submit(None if args else name, factory)
+
+    def forget_commands(self) -> None:
+        """Forget the velocity command taken so far: only a later one may move the drive.
+
+        At a ~/stop or ~/disable asked (a managed deactivate asks a stop) and at a
+        fault latched: with a long command_timeout, the command from before ran the
+        wheel again at ~/enable, ~/reset_fault or activate (outside audit).
+        Commands taken since still count: a planner still streaming wants motion.
+        """
+        with self._lock:
+            self._watchdog.reset()
 
     def start(self) -> None:
         """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
@@ -434,7 +447,7 @@ class DriveController:
         """
         if self._loop is not None:
             self._loop.stop(timeout if timeout is not None else
-                            SHUTDOWN_WAIT + self.drive.transport.failed_exchange_seconds())
+                            SHUTDOWN_WAIT + 2 * self.drive.transport.failed_exchange_seconds())
             self._stopped_loop_errors += self._loop.errors
             self._loop = None
 
@@ -930,13 +943,8 @@ class DriveController:
         with self._lock:
             rejected, clamped = self._rejected, self._clamped
         run_state, reason = decide(self.intent, conditions)
-        if run_state in FORGETS_COMMANDS and run_state is not self._last_run_state:
-            # A command from before a ~/stop, a fault or a lifecycle deactivate, still
-            # within a long command_timeout, ran the wheel again at ~/enable,
-            # ~/reset_fault or activate (outside audit): only those taken since the
-            # hold began count (a planner still streaming then still wants motion).
-            with self._lock:
-                self._watchdog.reset()
+        if run_state is RunState.FAULT and self._last_run_state is not RunState.FAULT:
+            self.forget_commands()
         self._last_run_state = run_state
         commanded = self._velocity if run_state is RunState.RUNNING else 0.0
         if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):

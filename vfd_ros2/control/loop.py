@@ -20,8 +20,8 @@ LOOP_ERROR_LOG_PERIOD = 10.0
 LOOP_ERROR_KINDS = 32
 
 
-#: s a loop's end is waited for, besides a failed exchange per drive (the stops it writes
-#: at its end: see DriveController.shutdown, Bus.shutdown)
+#: s a loop's end is waited for, besides two failed exchanges per drive (the one under way
+#: when asked, and the stop it writes at its end: see DriveController.shutdown, Bus.shutdown)
 SHUTDOWN_WAIT = 3.0
 
 #: below this fraction of its rate over two windows running, a loop is said to run short

@@ -252,7 +252,10 @@ class RtuLink:
                     self._resync()
                     raise LinkBadFrame('malformed reply', data)
                 if data[0] != unit or (data[1] & 0x7F) != function:
-                    # A late reply to an earlier request (of this or another unit).
+                    # A late reply to an earlier request (of this or another unit): the
+                    # one its unit's guard waits for, which ends it (a stop retried
+                    # after a hurried pass sat out the whole guard: re-check).
+                    self._hold.pop(data[0], None)
                     self._on_discard(data[0], 'late')
                     instead.append(data)
                     continue
@@ -529,6 +532,7 @@ class RtuLink:
                 self._on_discard(None, 'garbage')
                 break
             units.add(pdu.dev_id)
+            self._hold.pop(pdu.dev_id, None)        # (as in exchange)
             self._on_discard(pdu.dev_id, 'late')
             data = data[size:]
         return units
