@@ -530,7 +530,7 @@ class Bus:
         stopped = set()
         for controller in sorted(serving, key=lambda c: not c.link.answering):
             with controller.drive.transport.hurried():
-                if controller.write_stop():
+                if controller.write_stop(quietly=True):
                     stopped.add(controller)
         for controller in serving:
             controller.finish(stop=controller not in stopped)

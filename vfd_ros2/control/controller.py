@@ -143,7 +143,6 @@ class DriveController:
         self._clock = clock
         self._lock = threading.Lock()
         self._watchdog = CommandWatchdog(config.command_timeout, clock)
-        self._last_run_state: RunState | None = None   # (see _publish_state)
         self._velocity = 0.0
         self._setpoints: dict[str, int] = {}
         self._written_setpoints: dict[str, int] = {}
@@ -567,33 +566,33 @@ class DriveController:
             self._actions.fail_all(f'drive offline: {self.link.error or "not connected"}{held}')
         self._publish_state()
 
-    def write_stop(self) -> bool:
-        """Write the stop now, quietly; return whether the drive took it (see Bus.finish)."""
+    def write_stop(self, quietly: bool = False) -> bool:
+        """Write the stop now; return whether the drive took it.
+
+        A failure is logged, unless ``quietly`` (Bus.finish tries once more).
+        """
         if not self.link.online:
             return False
         try:
+            # Whatever the driver believes the drive is doing: write the stop.
             self.drive.forget_state()
             self.drive.apply(0.0, run=False, idle_action='stop')
-            self.drive.transport.end_command_burst()
-        except VfdError:
+            self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
+        except VfdError as exc:
+            if quietly:
+                pass
+            elif getattr(self.drive, 'asserted_command', None) == 'stop':
+                log.warning('%s at shutdown: the stop command is written, but %s',
+                            self.drive.hardware_id, exc)
+            else:
+                log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
             return False
         return True
 
     def finish(self, stop: bool = True) -> None:
         """End of the loop: command the drive to stop (unless written already), close the link."""
-        if stop and self.link.online:
-            try:
-                # Whatever the driver believes the drive is doing: write the stop.
-                self.drive.forget_state()
-                self.drive.apply(0.0, run=False, idle_action='stop')
-                self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
-            except VfdError as exc:
-                if getattr(self.drive, 'asserted_command', None) == 'stop':
-                    log.warning('%s at shutdown: the stop command is written, but %s',
-                                self.drive.hardware_id, exc)
-                else:
-                    log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id,
-                                exc)
+        if stop:
+            self.write_stop()
         self.drive.close()
         self.link.closed()
         self._actions.close('the control loop ended before this action ran')
@@ -854,6 +853,7 @@ class DriveController:
         if own_absence and self._clock() < self._comm_fault_grace_until:
             return       # the reset sent at connect is still taking effect
         self.intent.fault_latched = True
+        self.forget_commands()
         log.warning('%s fault %s %s', self.drive.hardware_id, fault.display, fault.name)
 
     def _check_not_stopping(self, now: float) -> None:
@@ -943,9 +943,6 @@ class DriveController:
         with self._lock:
             rejected, clamped = self._rejected, self._clamped
         run_state, reason = decide(self.intent, conditions)
-        if run_state is RunState.FAULT and self._last_run_state is not RunState.FAULT:
-            self.forget_commands()
-        self._last_run_state = run_state
         commanded = self._velocity if run_state is RunState.RUNNING else 0.0
         if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):
             # Commanded to run, but the drive does not get there (e.g. CiA 402 stuck).
