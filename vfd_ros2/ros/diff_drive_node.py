@@ -145,7 +145,7 @@ class WheelInput:
         self.fault = False
         self.state = ''
         self.received: Time | None = None
-        self.timeout_s = math.inf   # wheel_status_timeout when it came (see ``_unheard``)
+        self.timeout_s = math.inf   # the status's timeout (see ``_unheard``)
 
     def update(self, msg: DriveStatus, now: Time, timeout_s: float) -> None:
         self.velocity_rad_s = self.sign * float(msg.measured_velocity)
@@ -155,29 +155,30 @@ class WheelInput:
         self.received = now
         self.timeout_s = timeout_s
 
-    def _unheard(self, now: Time, timeout_s: float) -> str:
+    def _unheard(self, now: Time) -> str:
         """Return why nothing current is known of this wheel ('' if its status is fresh).
 
-        A status counts for the timeout in force when it came, or a shorter one set
-        since: a raised wheel_status_timeout must not make a dead wheel's last status
-        fresh again (the other wheel ran alone, the robot turning about the dead one).
+        A status counts for the wheel_status_timeout in force when it came, or a
+        shorter one set since (``DiffDriveNode._apply_parameters``): a raised one must
+        not make a dead wheel's last status fresh again (the other wheel ran alone, the
+        robot turning about the dead one).
         """
         if self.received is None:
             return f'no status from the {self.name} wheel yet'
         age = (now - self.received).nanoseconds * 1e-9
-        timeout_s = min(timeout_s, self.timeout_s)
-        if age > timeout_s:
+        if age > self.timeout_s:
             # (no age in the text: a halt is told once per cause, not once per cycle)
-            return f'{self.name} wheel status older than wheel_status_timeout {timeout_s:g} s'
+            return (f'{self.name} wheel status older than wheel_status_timeout '
+                    f'{self.timeout_s:g} s')
         if age < 0.0:
             return f'{self.name} wheel status is from before the clock jumped back'
         if not self.online:
             return f'{self.name} wheel drive is offline'
         return ''
 
-    def not_following(self, now: Time, timeout_s: float) -> str:
+    def not_following(self, now: Time) -> str:
         """Return why this wheel may not follow its commands ('' if nothing says so)."""
-        if unheard := self._unheard(now, timeout_s):
+        if unheard := self._unheard(now):
             return unheard
         if self.fault:
             return f'{self.name} wheel drive has a fault'
@@ -185,9 +186,9 @@ class WheelInput:
             return f'{self.name} wheel drive is {self.state}'
         return ''
 
-    def problem(self, now: Time, timeout_s: float) -> str:
+    def problem(self, now: Time) -> str:
         """Return why this wheel's speed cannot be used ('' if it can)."""
-        if unheard := self._unheard(now, timeout_s):
+        if unheard := self._unheard(now):
             return unheard
         if not math.isfinite(self.velocity_rad_s):
             return f'{self.name} wheel measured_velocity is not a number'
@@ -206,7 +207,7 @@ class WheelPosition:
         self.velocity_rad_s = math.nan     # at the same moment (NaN: not given)
         self.measured: Time | None = None  # its header stamp (None: zero, not known)
         self.received: Time | None = None
-        self.timeout_s = math.inf          # wheel_status_timeout when it came
+        self.timeout_s = math.inf          # the position's timeout (as WheelInput's)
         self.updates = 0        # positions received so far
 
     def update(self, msg: JointState, now: Time, timeout_s: float) -> str:
@@ -257,10 +258,10 @@ class WheelPosition:
         ahead = (moment - self.measured).nanoseconds * 1e-9
         return self.position_rad + self.velocity_rad_s * min(max(ahead, 0.0), limit_s)
 
-    def usable(self, now: Time, timeout_s: float) -> bool:
-        """Return whether the position is fresh (as ``WheelInput``: the shorter timeout)."""
+    def usable(self, now: Time) -> bool:
+        """Return whether the position is fresh (its timeout as ``WheelInput``'s)."""
         return self.received is not None and math.isfinite(self.position_rad) and \
-            0.0 <= (now - self.received).nanoseconds * 1e-9 <= min(timeout_s, self.timeout_s)
+            0.0 <= (now - self.received).nanoseconds * 1e-9 <= self.timeout_s
 
 
 class DiffDriveNode(Node):
@@ -312,7 +313,7 @@ class DiffDriveNode(Node):
         self.rejected_commands = 0
         self.target: tuple[float, float] = (0.0, 0.0)
         self.last_command: Time | None = None
-        self.last_command_timeout_s = math.inf     # cmd_vel_timeout when it came
+        self.last_command_timeout_s = math.inf     # its timeout (see _apply_parameters)
         self.timed_out = True
         self.halted = ''            # why both wheels are held at zero ('' while they follow)
         self._halt_told = ''        # the cause last logged
@@ -361,8 +362,9 @@ class DiffDriveNode(Node):
         self.limiter.limits = limits
         self.cmd_vel_timeout_s = float(values['cmd_vel_timeout'])
         self.wheel_status_timeout_s = float(values['wheel_status_timeout'])
-        # What came before holds for the shortest timeout set since, so that one lowered
-        # and raised again cannot revive what it timed out (as CommandWatchdog).
+        # What came before holds for the timeout in force when it came, or the shortest
+        # set since: one raised, or lowered and raised again, cannot revive what timed
+        # out (as CommandWatchdog). What comes later takes the timeout then in force.
         self.last_command_timeout_s = min(self.last_command_timeout_s, self.cmd_vel_timeout_s)
         for wheel in (self.left, self.right, self.left_position, self.right_position):
             wheel.timeout_s = min(wheel.timeout_s, self.wheel_status_timeout_s)
@@ -501,9 +503,9 @@ class DiffDriveNode(Node):
     def _command(self, now: Time, dt: float) -> None:
         # (a command from before the clock jumped back, as simulated time does when a
         # simulation restarts, is no fresher for it: its age is not known; and one counts
-        # for the timeout in force when it came, or a shorter one set since: a raised
-        # cmd_vel_timeout restarted the robot on a cmd_vel it had timed out)
-        timeout_s = min(self.cmd_vel_timeout_s, self.last_command_timeout_s)
+        # for its own timeout (see _apply_parameters): a raised cmd_vel_timeout
+        # restarted the robot on a cmd_vel it had timed out)
+        timeout_s = self.last_command_timeout_s
         fresh = self.last_command is not None and \
             0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= timeout_s
         if not fresh and not self.timed_out and self.last_command is not None:
@@ -513,8 +515,7 @@ class DiffDriveNode(Node):
         # One wheel that does not follow (offline, faulted, stopped, ...) would turn the
         # robot about it at the commanded speed: both wheels are brought to zero
         # (within the acceleration limits) until both follow again.
-        halt = self.left.not_following(now, self.wheel_status_timeout_s) or \
-            self.right.not_following(now, self.wheel_status_timeout_s)
+        halt = self.left.not_following(now) or self.right.not_following(now)
         if halt and halt != self._halt_told and fresh and any(self.target):
             # (told when a command asks for motion: a wheel halted while the robot
             # stands is told once something is asked of it)
@@ -531,8 +532,7 @@ class DiffDriveNode(Node):
         self.right_pub.publish(Float64(data=self.right.sign * right))
 
     def _integrate(self, now: Time, dt: float) -> None:
-        problem = self.left.problem(now, self.wheel_status_timeout_s) or \
-            self.right.problem(now, self.wheel_status_timeout_s)
+        problem = self.left.problem(now) or self.right.problem(now)
         positions = self._positions(now)
         if problem:
             self.odometry.hold()
@@ -573,7 +573,7 @@ class DiffDriveNode(Node):
         if not self.position_feedback:
             return None
         left, right = self.left_position, self.right_position
-        if not all(w.usable(now, self.wheel_status_timeout_s) for w in (left, right)):
+        if not all(w.usable(now) for w in (left, right)):
             return None
         if left.measured is None or right.measured is None:
             return left.position_rad, right.position_rad

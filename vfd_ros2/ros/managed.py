@@ -159,11 +159,10 @@ class DriveTransitions:
         timeout = max(max(c.config.action_timeout for c in controllers.values()), 1.0) + \
             max(c.addressing_interval() for c in controllers.values())
         offline = wait_online(controllers, timeout, self._keep_waiting)
-        if offline and not self._keep_waiting():
-            self._close()       # the node goes: no error to log (and no /rosout to log to)
-            return FAILURE
         if offline:
             self._close()
+            if not self._keep_waiting():
+                return FAILURE  # the node goes: no error to log (and no /rosout to log to)
             return self._fail('configure', 'drive(s) not online: ' + '; '.join(
                 f'{name}: {why}' for name, why in offline.items()), FAILURE)
         return SUCCESS
