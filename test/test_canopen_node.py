@@ -9,6 +9,7 @@ import time
 import can
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.parameter import Parameter
 
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
 from harness import wait_for
@@ -537,6 +538,54 @@ def test_the_heartbeat_and_pdo_objects_written_at_connect_are_not_parameters(mak
                      GetDriveParameter.Request(name='0x1017'))
     assert got.success and not got.writable
     assert wheel.wait_status(lambda s: s.online, 2.0, 'online').reconnects == 0
+
+
+def _set(wheel, name: str, value: float) -> None:
+    reply = wheel.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name=name, value=value, persistent=False))
+    assert reply.success, (name, reply.message)
+
+
+def _motor_rpm_to_wheel(rpm: float) -> float:
+    return rpm * 2 * math.pi / 60 / 10.0          # the harness's gear_ratio 10
+
+
+def test_a_stop_is_verified_at_standstill_not_when_the_drive_drops_its_run_state(
+        make_can_harness):
+    """``~/stop`` answers once the measured speed is down, not at the state change alone.
+
+    With 0x605C = 1 (the twin's default) a CiA 402 drive stays in operation enabled
+    through the ramp; with 0 it switches on at once and the motor coasts on. The
+    stop is verified by standstill either way; a motor still turning at
+    stop_timeout fails the stop, naming the speed.
+    """
+    h = make_can_harness(node_parameters={'auto_enable': True})
+    wheel, sim = h.wheels[1], h.sims[1]
+    _set(wheel, 'profile_deceleration', 400.0)             # 2 rad/s = 191 rpm: ~0.5 s
+    for option in (1.0, 0.0):
+        _set(wheel, 'disable_operation_option_code', option)
+        wheel.trigger('enable')
+        wheel.stream(2.0)
+        wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                          'at 2 rad/s')
+        reply = wheel.trigger('stop')
+        speed = _motor_rpm_to_wheel(sim.speed_rpm)
+        assert reply.success, (option, reply.message)
+        assert abs(speed) <= 0.1 + 1e-9, (option, speed, reply.message)
+        wait_for(lambda: sim.state is State.SWITCHED_ON, 2.0, 'operation disabled')
+        wheel.stop_stream()
+    # A coast slower than stop_timeout: not verified, and the answer says why.
+    _set(wheel, 'profile_deceleration', 20.0)              # 191 rpm: ~10 s
+    wheel.node.set_parameters([Parameter('stop_timeout', value=0.5)])
+    wheel.trigger('enable')
+    wheel.stream(2.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'at 2 rad/s')
+    reply = wheel.trigger('stop')
+    wheel.stop_stream()
+    assert not reply.success
+    assert 'the drive reports not running, but still measures' in reply.message, reply.message
+    assert sim.state is State.SWITCHED_ON and _motor_rpm_to_wheel(sim.speed_rpm) > 1.0
 
 
 def test_an_idle_drive_is_enabled_before_any_command(make_can_harness):

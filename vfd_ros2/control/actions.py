@@ -154,7 +154,7 @@ class ServiceActions:
     def __init__(self, drive: Drive, intent: Intent, reading: Callable[[], Reading],
                  commands_fresh: Callable[[], bool], check_write: Callable[[str, float], None],
                  action_timeout: float, stop_timeout: float,
-                 clock: Callable[[], float]) -> None:
+                 clock: Callable[[], float], standstill: float = 0.1) -> None:
         self.drive = drive
         self.intent = intent
         self._reading = reading
@@ -162,6 +162,8 @@ class ServiceActions:
         self._check_write = check_write
         self.action_timeout = action_timeout
         self.stop_timeout = stop_timeout
+        #: rad/s: a measured speed at most this is standstill (a verified stop)
+        self.standstill = standstill
         self._clock = clock
         #: set when the idle command must be written again now, whatever was sent
         self.reassert_idle = False
@@ -247,23 +249,44 @@ class ServiceActions:
             return ActionResult(False, 'the drive does not report running: not enabled')
         return ActionResult(True, 'enabled and running')
 
-    def _stopping(self, idle_action: str, what: str) -> Action:
+    def _turning(self) -> float | None:
+        """Return the measured speed (rad/s) while above standstill, else None."""
+        measured = self._reading().measured_velocity
+        return measured if abs(measured) > self.standstill else None   # (NaN: not measured)
+
+    def _stopping(self, idle_action: str, what: str, to_standstill: bool) -> Action:
+        """Write the idle command; verify the drive no longer runs (and stands still).
+
+        A drive may drop its run state while the motor still turns: a CiA 402 drive
+        whose disable operation coasts (0x605C = 0), or one that reports the run
+        command rather than the motion. A stop is verified only at standstill, where
+        the drive measures its speed; a disable coasts by design and says so.
+        """
         self.intent.idle_action = idle_action
         self.reassert_idle = True      # written again now, whatever was sent before
-        ok = yield from self._wait_for(lambda: not self._flag('running', False),
-                                       self.stop_timeout)
+        ok = yield from self._wait_for(
+            lambda: not self._flag('running', False) and not (
+                to_standstill and self._turning() is not None), self.stop_timeout)
+        turning = self._turning()
         if not ok:
-            return ActionResult(False, f'{what} commanded, but the drive still reports running '
-                                f'after {self.stop_timeout:g} s')
+            if self._flag('running', False):
+                return ActionResult(False, f'{what} commanded, but the drive still reports '
+                                    f'running after {self.stop_timeout:g} s')
+            return ActionResult(False, f'{what} commanded: the drive reports not running, but '
+                                f'still measures {turning:.3g} rad/s after '
+                                f'{self.stop_timeout:g} s')
+        if turning is not None:
+            return ActionResult(True, f'{what}: the drive reports not running; the motor still '
+                                f'turns at {turning:.3g} rad/s (coasting)')
         return ActionResult(True, f'{what}: the drive reports not running')
 
     def disable(self) -> Action:
         self.intent.enabled = False
-        return (yield from self._stopping(self._disable_action(), 'disabled'))
+        return (yield from self._stopping(self._disable_action(), 'disabled', False))
 
     def stop(self) -> Action:
         self.intent.stopped = True
-        return (yield from self._stopping('stop', 'stopped (call ~/enable to resume)'))
+        return (yield from self._stopping('stop', 'stopped (call ~/enable to resume)', True))
 
     def reset_fault(self) -> Action:
         reading = self._reading()

@@ -159,7 +159,8 @@ class DriveController:
         self._driver_settings = settings_the_driver_depends_on(drive)
         self.services = ServiceActions(
             drive, self.intent, lambda: self._reading, self._commands_fresh,
-            self.check_parameter_write, config.action_timeout, config.stop_timeout, clock)
+            self.check_parameter_write, config.action_timeout, config.stop_timeout, clock,
+            config.at_speed_tolerance)
         self._loop: CycleLoop | None = None
         #: what to know about the thread that runs this drive (its own, or a bus's)
         self.loop_notes: tuple[str, ...] = ()

@@ -98,6 +98,8 @@ class SimulatedCanopenDrive:
                 obj.encode_raw(parameter.to_raw(value))
         self.network: Any = None
         self.state = State.SWITCH_ON_DISABLED
+        # Disable operation with 0x605C = 1: in operation enabled until the ramp ends.
+        self._slowing_to_switched_on = False
         self.controlword = 0
         self.target_raw = 0
         self.speed_rpm = 0.0
@@ -173,6 +175,14 @@ class SimulatedCanopenDrive:
         if p is None or p.index is None:
             return fallback
         return p.from_raw(self._raw(p.index, p.subindex)) or fallback
+
+    def _stored_value(self, code: str) -> float | None:
+        """Engineering value of a parameter the profile may lack (None), 0 kept as 0."""
+        try:
+            p = self.profile.parameter(code)
+        except ParameterError:
+            return None
+        return None if p.index is None else p.from_raw(self._raw(p.index, p.subindex))
 
     # --- dynamic objects ------------------------------------------------------------------
 
@@ -321,7 +331,11 @@ class SimulatedCanopenDrive:
                            State.OPERATION_ENABLED):
                     new = State.SWITCH_ON_DISABLED if self.state is State.SWITCH_ON_DISABLED \
                         else self.state
-            self.state = new
+            self._slowing_to_switched_on = (
+                new is State.SWITCHED_ON and self.state is State.OPERATION_ENABLED and
+                self._stored_value('disable_operation_option_code') == 1)
+            if not self._slowing_to_switched_on:
+                self.state = new
             return
         commands = self.objects.commands
         if word & commands['fault_reset'] and word == commands['fault_reset']:
@@ -388,7 +402,8 @@ class SimulatedCanopenDrive:
             self._consume_heartbeat(now)
             self._supervise_master(now)
             if self.cia402:
-                running = self.state is State.OPERATION_ENABLED
+                running = self.state is State.OPERATION_ENABLED and \
+                    not self._slowing_to_switched_on
             else:
                 running = self.run_requested and not self.fault_code and self.bus_control()
             target = self._target_rpm() if running else 0.0
@@ -406,6 +421,10 @@ class SimulatedCanopenDrive:
             self.motor_revolutions += 0.5 * (previous + self.speed_rpm) / 60.0 * dt
             if self.state is State.QUICK_STOP_ACTIVE and self.speed_rpm == 0.0:
                 self.state = State.SWITCH_ON_DISABLED
+            if self._slowing_to_switched_on and self.speed_rpm == 0.0:
+                self._slowing_to_switched_on = False
+                if self.state is State.OPERATION_ENABLED:
+                    self.state = State.SWITCHED_ON
             if not self.silent and self.network is not None:
                 self._produce(now)
 
