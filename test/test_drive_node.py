@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -567,3 +568,41 @@ def test_a_stop_asked_while_offline_holds_when_the_link_returns(make_harness, ac
     assert not h.sim.run_requested and h.sim.speed_rpm == 0.0, 'ran again by itself'
     assert h.trigger('enable').success
     h.wait_status(lambda s: s.running, 5.0, 'running after ~/enable')
+
+
+def test_commands_slower_than_command_timeout_are_named_in_diagnostics(make_harness, caplog):
+    """A commander slower than command_timeout chatters the wheel: say so, not only stop.
+
+    ``ros2 topic pub -r 2`` against command_timeout 0.2: the watchdog stops the drive
+    between the commands. Each command after such a stop is counted; /diagnostics
+    WARNs (naming the gap and the timeout) and one line is logged; a commander fast
+    enough, or one that resumes after a pause, is not counted.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'command_timeout': 0.2})
+    diagnostics: list[DiagnosticArray] = []
+    h.tester.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append, 10)
+
+    def counted() -> int:
+        values = [kv.value for d in list(diagnostics) for st in d.status
+                  if st.hardware_id == h.node.controller.drive.hardware_id
+                  for kv in st.values if kv.key == 'commands after a watchdog stop']
+        return int(values[-1]) if values else -1
+
+    h.stream(1.0)                                    # 20 Hz: fast enough
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    wait_for(lambda: counted() == 0, 3.0, 'diagnostics with the counter')
+    h.stop_stream()
+    h.wait_status(lambda s: s.watchdog_tripped, 2.0, 'watchdog')
+    time.sleep(1.0)                                  # a pause (5 x the timeout)
+    with caplog.at_level(logging.WARNING):
+        for _ in range(3):                           # then 0.5 s apart
+            h.publish(1.0)
+            time.sleep(0.5)
+    wait_for(lambda: counted() == 2, 3.0, 'the two late commands counted')
+    warned = [st for d in list(diagnostics) for st in d.status
+              if st.level == DiagnosticStatus.WARN and 'velocity commands came 0.5 s apart, '
+              'longer than command_timeout 0.2 s' in st.message]
+    assert warned, [st.message for d in diagnostics for st in d.status][-3:]
+    lines = [r.getMessage() for r in caplog.records if 'velocity commands came' in
+             r.getMessage()]
+    assert len(lines) == 1, lines                    # one line per 10 s, not one per command

@@ -52,6 +52,13 @@ NEAR_TRIP = 0.75
 #: the interval a re-plan is sized for, as a multiple of the gap that prompted it
 ADDRESSING_HEADROOM = 1.25
 
+#: a command that comes after the watchdog stopped the drive, within this multiple of
+#: command_timeout after the one before, shows a commander slower than the timeout
+#: (``ros2 topic pub -r 1`` with command_timeout 0.5: the wheel stops between commands)
+COMMAND_GAP_FACTOR = 4.0
+#: s such a gap stays a WARN in /diagnostics, and between two log lines about them
+COMMAND_GAP_MEMORY = 10.0
+
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
 
@@ -148,6 +155,11 @@ class DriveController:
         self._written_setpoints: dict[str, int] = {}
         self._rejected = 0
         self._clamped = 0
+        self._command_gaps = 0            # commands after a watchdog stop (a slow commander)
+        self._command_gap = ''            # the last one, described
+        self._command_gap_at = -math.inf  # ... and when it came
+        self._command_gap_logged_at = -math.inf
+        self._command_gaps_logged = 0
         self.intent = Intent(enabled=config.auto_enable)
         self.link = LinkSupervisor(drive.hardware_id, config.comm_loss_threshold,
                                    config.reconnect_period, clock)
@@ -258,10 +270,13 @@ class DriveController:
             # A new value, or the first command after a watchdog stop, preempts the
             # cycle; a repeated one waits for it, and so does any on a link whose
             # cycle applies the commands (CANopen SYNC).
-            urgent = (clamped != self._velocity or self._watchdog.expired) and \
+            watchdog = self._watchdog
+            expired = watchdog.expired
+            urgent = (clamped != self._velocity or expired) and \
                 not self.drive.transport.commands_keep_the_cycle
+            gap_note = self._note_command_gap(watchdog.age, watchdog.limit) if expired else ''
             self._velocity = clamped
-            self._watchdog.feed()
+            watchdog.feed()
             self._command_pending |= urgent
             outcome = CommandOutcome.ACCEPTED
             if clamped != velocity:
@@ -269,7 +284,30 @@ class DriveController:
                 outcome = CommandOutcome.CLAMPED
         if urgent and self.request_preempt is not None:
             self.request_preempt()
+        if gap_note:
+            log.warning('%s: %s', self.drive.hardware_id, gap_note)
         return outcome
+
+    def _note_command_gap(self, gap: float, limit: float) -> str:
+        """Count a command that comes soon after the watchdog stopped the drive.
+
+        Called under the lock with the gap to the command before (inf after a
+        connect, a stop or a fault: those forget the commands). Returns the line
+        to log, at most one per COMMAND_GAP_MEMORY.
+        """
+        if gap > COMMAND_GAP_FACTOR * limit:
+            return ''
+        self._command_gaps += 1
+        now = self._clock()
+        self._command_gap = (f'velocity commands came {gap:.2g} s apart, longer than '
+                             f'command_timeout {limit:g} s: the watchdog stops the drive '
+                             f'between them ({self._command_gaps} times); publish them '
+                             'more often or raise command_timeout')
+        self._command_gap_at = now
+        if now - self._command_gap_logged_at < COMMAND_GAP_MEMORY:
+            return ''
+        self._command_gap_logged_at = now
+        return self._command_gap
 
     def command_setpoint(self, topic: str, value: float) -> None:
         """Accept an auxiliary setpoint (profile ``setpoints``); ParameterError if invalid.
@@ -942,7 +980,8 @@ class DriveController:
         stats = self.drive.stats
         conditions = self._conditions()
         with self._lock:
-            rejected, clamped = self._rejected, self._clamped
+            rejected, clamped, gaps = self._rejected, self._clamped, self._command_gaps
+            gap, gap_at = self._command_gap, self._command_gap_at
         run_state, reason = decide(self.intent, conditions)
         commanded = self._velocity if run_state is RunState.RUNNING else 0.0
         if run_state is RunState.RUNNING and (reading.stuck or self._lost_run):
@@ -1004,6 +1043,8 @@ class DriveController:
             link_notes=self.drive.transport.link_notes + self.loop_notes,
             read_at=read_at,
             not_stopping=not_stopping,
+            command_gaps=gaps,
+            command_gap=gap if read_at - gap_at < COMMAND_GAP_MEMORY else '',
         )
         with self._lock:
             self._state = snapshot

@@ -48,7 +48,7 @@ class DriveState(NamedTuple):
     """A consistent snapshot of everything the node publishes.
 
     A named tuple, not a frozen dataclass: the control loop builds one per drive
-    and cycle, and a frozen dataclass sets its 39 fields one ``object.__setattr__``
+    and cycle, and a frozen dataclass sets its 40-odd fields one ``object.__setattr__``
     at a time (6 us against 1.7 us, the largest single step of publishing a cycle).
     """
 
@@ -94,6 +94,8 @@ class DriveState(NamedTuple):
     link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)
     read_at: float = math.nan       # the controller's clock when it was taken (after a poll)
     not_stopping: str = ''          # held idle, the drive has run on past stop_timeout: why
+    command_gaps: int = 0           # commands that came soon after a watchdog stop
+    command_gap: str = ''           # the last of them, described, while recent
 
     @property
     def state(self) -> str:

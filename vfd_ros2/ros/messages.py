@@ -238,6 +238,8 @@ def _warnings(state: DriveState) -> list[str]:
     if state.unavailable:
         warnings.append(f'the drive refuses: {"; ".join(state.unavailable)}')
     warnings.extend(state.link_notes)
+    if state.command_gap:
+        warnings.append(state.command_gap)
     return warnings
 
 
@@ -295,6 +297,7 @@ def diagnostic_status(state: DriveState, name: str, ever_online: bool) -> Diagno
         ('late replies', state.late_replies),
         ('rejected commands', state.rejected_commands),
         ('clamped commands', state.clamped_commands),
+        ('commands after a watchdog stop', state.command_gaps),
         ('unexpected starts', state.unexpected_starts),
         ('comm-loss faults reset at connect', state.comm_faults_cleared),
         ('loop errors', state.loop_errors),
