@@ -154,7 +154,7 @@ class ServiceActions:
     def __init__(self, drive: Drive, intent: Intent, reading: Callable[[], Reading],
                  commands_fresh: Callable[[], bool], check_write: Callable[[str, float], None],
                  action_timeout: float, stop_timeout: float,
-                 clock: Callable[[], float], standstill: float = 0.1) -> None:
+                 clock: Callable[[], float], standstill: float) -> None:
         self.drive = drive
         self.intent = intent
         self._reading = reading

@@ -110,6 +110,15 @@ class ControllerConfig:
             raise ParameterError(f'realtime_priority must be 0..99, got {self.realtime_priority}')
 
 
+def standstill(config: ControllerConfig) -> float:
+    """Return the measured speed (rad/s) at or below which a stopped drive stands still.
+
+    At least 2 % of max_velocity: a direct-drive wheel's 1 rpm, one step of a speed
+    in whole rpm, is 0.1 rad/s, and a stop must not fail on that.
+    """
+    return max(config.at_speed_tolerance, 0.02 * config.max_velocity)
+
+
 def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
     """Return the drive parameters a running node depends on, with why: code -> why.
 
@@ -172,7 +181,7 @@ class DriveController:
         self.services = ServiceActions(
             drive, self.intent, lambda: self._reading, self._commands_fresh,
             self.check_parameter_write, config.action_timeout, config.stop_timeout, clock,
-            config.at_speed_tolerance)
+            standstill(config))
         self._loop: CycleLoop | None = None
         #: what to know about the thread that runs this drive (its own, or a bus's)
         self.loop_notes: tuple[str, ...] = ()
@@ -403,6 +412,7 @@ class DriveController:
             self.plan_host_loss()
         self.services.action_timeout = new.action_timeout
         self.services.stop_timeout = new.stop_timeout
+        self.services.standstill = standstill(new)
         if self._loop is not None:
             self._loop.set_period(new.cycle_period)
         return new
