@@ -9,6 +9,7 @@ a child process on the other end; the nodes are the real ``DriveNode`` and
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 import uuid
@@ -130,6 +131,21 @@ def bus_node_on_segment(ros_context, veth_link, tmp_path,
         spin.stop()
         executor.shutdown(timeout_sec=1.0)
         bus.destroy_node()
+
+
+def test_the_first_connect_does_not_fail_on_a_segment_just_opened(start_segment, make_wheel,
+                                                                   caplog):
+    """A connect right after the segment opened waits for the first cycle's inputs.
+
+    It failed on "no process data yet" and closed the segment again: one to three
+    more opens each time (outside audit).
+    """
+    start_segment([IMO_HD2_EC_TX508])
+    with caplog.at_level(logging.INFO):
+        wheel = make_wheel('imo_hd2')
+        wheel.wait_status(lambda s: s.online, 10.0, 'online')
+    failed = [r.getMessage() for r in caplog.records if 'process data' in r.getMessage()]
+    assert not failed, failed
 
 
 def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, veth_link,

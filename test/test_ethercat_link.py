@@ -254,6 +254,69 @@ def test_a_slave_that_leaves_op_by_itself_is_noticed_and_brought_back(start_segm
     assert link.slave(0).state is ALState.OP
 
 
+@pytest.mark.parametrize('fallen_to, refused', [(ALState.PRE_OP, ALState.SAFE_OP),
+                                                  (ALState.INIT, ALState.PRE_OP)])
+def test_a_slave_that_will_not_come_back_never_holds_up_the_process(
+        start_segment, open_segment, fallen_to, refused):
+    """A slave that falls and refuses the way back costs no wait in the process.
+
+    SOEM's reconfig waited up to 2 s for each state inside one pysoem call that
+    keeps the GIL: every thread stood still (the process-data cycle too, and the
+    other slave's SM watchdog tripped) once per retry, for as long as the slave
+    refused (outside audit). The supervisor now takes one step per pass.
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    link = open_segment(supervise_s=0.02, state_poll_s=0.1)
+    link.configure_pdos(1, BONENG_VL)
+    link.start()
+    wait_for(lambda: all(sim.esc(n)['al_status'] == int(ALState.OP) for n in (0, 1)), 2.0,
+             'both slaves in OP')
+    assert all(slave.esc_setup for slave in link.slaves)    # what a power cycle needs back
+    gaps: list[float] = []
+    done = threading.Event()
+
+    def beat() -> None:
+        last = time.monotonic()
+        while not done.wait(0.005):
+            now = time.monotonic()
+            gaps.append(now - last)
+            last = now
+
+    beating = threading.Thread(target=beat, daemon=True)
+    beating.start()
+    sim.call(1, 'refuse_state', int(refused), 0x0011)
+    sim.fail(1, fallen_to, 0x001B)
+    cycles = link.stats().cycles
+    time.sleep(3.0)
+    done.set()
+    beating.join()
+    assert max(gaps) < 0.5, max(gaps)                      # was 2.0 s, once per retry
+    assert link.stats().cycles - cycles > 0.5 * 3.0 / 0.002, link.stats()
+    assert sim.esc(0)['al_status'] == int(ALState.OP)       # the other slave ran on
+    assert sim.esc(1)['al_status'] & 0x0F != int(ALState.OP)
+    sim.call(1, 'refuse_state', int(refused), 0)
+    wait_for(lambda: sim.esc(1)['al_status'] == int(ALState.OP), 3.0,
+             'slave 2 brought back once it takes the way back')
+
+
+def test_a_slave_below_safe_op_at_start_does_not_keep_the_others_from_running(
+        start_segment, open_segment):
+    """It kept the whole segment closed, every drive on it offline (outside audit)."""
+    sim = start_segment([IMO_HD2_EC_TX508, BONENG_MH_EC])
+    sim.call(1, 'refuse_state', int(ALState.SAFE_OP), 0x001D)
+    link = open_segment(supervise_s=0.02, state_poll_s=0.1)
+    link.configure_pdos(1, BONENG_VL)
+    with pytest.raises(AlStateError, match='slave 2 did not reach SAFE_OP'):
+        link.start()
+    wait_for(lambda: sim.esc(0)['al_status'] == int(ALState.OP), 2.0, 'slave 1 in OP')
+    cycles = link.stats().cycles
+    wait_for(lambda: link.stats().cycles > cycles + 100, 2.0, 'the cycle running')
+    assert sim.esc(1)['al_status'] & 0x0F == int(ALState.PRE_OP)
+    sim.call(1, 'refuse_state', int(ALState.SAFE_OP), 0)
+    wait_for(lambda: sim.esc(1)['al_status'] == int(ALState.OP), 3.0,
+             'slave 2 brought up once it takes SAFE-OP')
+
+
 def test_a_second_master_on_the_nic_is_refused_until_the_first_closes(start_segment,
                                                                         open_segment):
     """Two masters on one segment would each reset and drive every slave: one is refused.

@@ -11,7 +11,8 @@ One ``EthercatSegment`` owns one ``pysoem.Master`` (one network interface) and:
   jitter. Nothing else runs in it: no mailbox, no state handling.
 - a supervisor thread for everything that may block for milliseconds: reading
   AL states when the WKC drops, acknowledging errors and re-entering OP, finding
-  a slave that vanished and came back (SOEM recover + reconfig), and polling
+  a slave that vanished and came back (SOEM recover, then SOEM's reconfiguration
+  one step per pass, never waiting inside pysoem: see ``_bring_up``), and polling
   the mailboxes for CoE emergencies (SOEM reads them only during mailbox access).
 - per-slave handles (``EthercatSlave``): identity from the SII, SDO upload/download
   (expedited and segmented; aborts raise ``SdoAbortError`` with the CiA 301 code
@@ -76,6 +77,33 @@ MISSED_CYCLES_RECENT = 10.0
 #: where a master process marks the NIC it drives (an flock, which the kernel drops
 #: when the process dies, however it dies)
 LOCK_DIR = '/run/lock' if os.path.isdir('/run/lock') else tempfile.gettempdir()
+
+
+#: ESC registers (ETG.1000.4 table 31): FMMU and sync manager counts, their settings
+ESC_COUNTS = 0x0004
+ESC_FMMUS = 0x0600
+ESC_SYNC_MANAGERS = 0x0800
+FMMU_BYTES, SYNC_MANAGER_BYTES = 16, 8
+
+
+def _read_esc_setup(slave: 'EthercatSlave') -> tuple[bytes, bytes] | None:
+    """Read a configured slave's sync manager and FMMU registers (None if unanswered).
+
+    SOEM's reconfiguration writes the same from its own tables; pysoem does not
+    show those, the ESC does.
+    """
+    soem = slave._soem   # noqa: SLF001 - pysoem's FPRD primitive
+    try:
+        fmmus, sync_managers = soem._fprd(ESC_COUNTS, 2)
+        fmmus, sync_managers = min(fmmus, 16), min(sync_managers, 16)
+        return (soem._fprd(ESC_SYNC_MANAGERS, SYNC_MANAGER_BYTES * sync_managers)
+                if sync_managers else b'',
+                soem._fprd(ESC_FMMUS, FMMU_BYTES * fmmus) if fmmus else b'')
+    except pysoem.WkcError:
+        log.warning('EtherCAT slave %d: its sync managers could not be read; after a power '
+                    "cycle SOEM's reconfiguration brings it back (the process waits in it)",
+                    slave.position + 1)
+        return None
 
 
 class MasterLock:
@@ -304,6 +332,12 @@ class EthercatSlave:
         self.lost = False
         self.unanswered_since: float | None = None   # its state reads unanswered since
         self.target = ALState.PRE_OP          # the state the supervisor keeps it in
+        #: its sync manager and FMMU registers as config_map left them (written again
+        #: when it comes back in INIT); None: not read, SOEM's reconfig does it
+        self.esc_setup: tuple[bytes, bytes] | None = None
+        #: writes its set-up again at PRE-OP (PDO mapping, start-up objects); raises
+        self.preop_setup: Callable[[], None] | None = None
+        self.setup_due = False                # came back through INIT: preop_setup first
         soem_slave.add_emergency_callback(self._on_emergency)
 
     # -- mailbox -----------------------------------------------------------------------
@@ -556,9 +590,15 @@ class EthercatSegment:
                 slave._outputs = bytes(len(slave._soem.output))
                 slave._inputs = bytes(len(slave._soem.input))
         self._expected_wkc = master.expected_wkc
-        self._await(ALState.SAFE_OP, self._slaves, settings.state_timeout_s)
+        # One slave that stays below SAFE-OP must not keep the others from running: it
+        # is left to the supervisor (its drive reports the AL status code meanwhile).
+        # It kept every drive of the segment offline (outside audit).
+        refusals = self._await_each(ALState.SAFE_OP, settings.state_timeout_s)
+        if len(refusals) == len(self._slaves):
+            raise refusals[0]
         for slave in self._slaves:
             slave.target = ALState.SAFE_OP
+            slave.esc_setup = _read_esc_setup(slave)
         self._stop.clear()
         self._reset_stats()
         self._cycle_thread = threading.Thread(target=self._cycle, daemon=True,
@@ -569,14 +609,22 @@ class EthercatSegment:
         self._supervisor.start()
         # SAFE-OP -> OP once valid outputs flow (ETG.1000.6 6.4.1: "SO: master sends
         # valid outputs"): the cycle is running now
-        self.request_state(ALState.OP)
+        self.request_state(ALState.OP, refusals=refusals)
 
-    def request_state(self, state: ALState, timeout: float | None = None) -> None:
-        """Request ``state`` for every slave; AlStateError (first failing slave) if refused."""
+    def request_state(self, state: ALState, timeout: float | None = None,
+                      refusals: list[AlStateError] | None = None) -> None:
+        """Request ``state`` for every slave; AlStateError (first failing slave) if refused.
+
+        ``refusals``: of slaves already known below the state's way (not waited for
+        again; the supervisor keeps asking them), raised first.
+        """
         self._require_open()
-        errors = []
+        errors = list(refusals or ())
+        refused = {exc.position for exc in errors}
         for slave in self._slaves:
             slave.target = state
+            if slave.position in refused:
+                continue
             try:
                 self._request(slave, state, timeout)
             except AlStateError as exc:
@@ -743,19 +791,63 @@ class EthercatSegment:
                         if self.on_slave_lost:
                             self.on_slave_lost(slave.position)
                     if self.settings.recover and soem.recover(timeout=3000) > 0:
+                        # (in INIT now: the next passes bring it up)
                         log.info('EtherCAT slave %d found again', slave.position + 1)
-                        soem.reconfig(timeout=3000)
                     continue
                 if self.on_slave_fell:
                     self.on_slave_fell(slave.position, slave.al_status, slave.al_status_code)
                 if slave.al_status & AL_ERROR_FLAG:        # acknowledge, then go on
                     soem.state = (slave.al_status & AL_STATE_MASK) | AL_ERROR_FLAG
                     soem.write_state()
-                if slave.state in (ALState.INIT, ALState.PRE_OP) and target >= ALState.SAFE_OP:
-                    if soem.reconfig(timeout=3000) < ALState.SAFE_OP:
-                        continue
-                soem.state = int(target)
-                soem.write_state()
+                below_safe_op = slave.state in (ALState.INIT, ALState.PRE_OP) and \
+                    target >= ALState.SAFE_OP
+                if not below_safe_op:
+                    soem.state = int(target)
+                    soem.write_state()
+                    continue
+            self._bring_up(slave)
+
+    def _bring_up(self, slave: EthercatSlave) -> None:
+        """Take one step of SOEM's reconfiguration of a slave below SAFE-OP; never wait.
+
+        SOEM's ``reconfig`` waits up to 2 s for each of INIT, PRE-OP and SAFE-OP
+        inside one pysoem call that keeps the GIL: a slave slow to get there (a drive
+        busy after a power cycle, one stuck in PRE-OP) froze the whole process for
+        2 s per retry, its process-data thread and every drive's loop with it (an
+        outside audit: the other slaves' SM watchdogs tripped, a watchdog stop and
+        ``~/stop`` came 2 s late). The same steps, one per supervisor pass: in INIT
+        the sync managers and FMMUs as config_map left them, then PRE-OP is asked;
+        in PRE-OP the set-up is written again if the slave came through INIT, then
+        SAFE-OP is asked. The state is read again at the next pass.
+        """
+        soem = slave._soem
+        if slave.state is ALState.INIT:
+            slave.setup_due = True
+            if slave.esc_setup is None:
+                with self._state_lock:
+                    soem.reconfig(timeout=3000)     # (not read at start: SOEM's own, waiting)
+                return
+            try:
+                for address, data in zip((ESC_SYNC_MANAGERS, ESC_FMMUS), slave.esc_setup):
+                    if data:
+                        soem._fpwr(address, data)   # noqa: SLF001 - pysoem's FPWR primitive
+            except pysoem.WkcError:
+                log.debug('slave %d: sync managers not written, next pass', slave.position + 1)
+                return
+            following = ALState.PRE_OP
+        else:
+            if slave.setup_due and slave.preop_setup is not None:
+                try:
+                    slave.preop_setup()
+                except (TransportError, ProtocolException) as exc:
+                    log.warning('EtherCAT slave %d: set-up not written again at PRE-OP, so '
+                                'it stays there: %s', slave.position + 1, exc)
+                    return
+            slave.setup_due = False
+            following = ALState.SAFE_OP
+        with self._state_lock:
+            soem.state = int(following)
+            soem.write_state()
 
     def _mark_returned(self, slave: EthercatSlave) -> None:
         slave.lost = False
@@ -802,6 +894,19 @@ class EthercatSegment:
             soem.state = int(state) | (AL_ERROR_FLAG if slave.al_status & AL_ERROR_FLAG else 0)
             soem.write_state()
         self._await(state, [slave], timeout)
+
+    def _await_each(self, state: ALState, timeout: float) -> list[AlStateError]:
+        """Wait until every slave reports ``state``; return the refusals (in line order)."""
+        deadline = time.monotonic() + timeout
+        refusals: list[AlStateError] = []
+        for slave in self._slaves:
+            try:
+                self._await(state, [slave], max(0.0, deadline - time.monotonic()))
+            except AlStateError as exc:
+                refusals.append(exc)
+            except CommTimeout:                             # (says "it does not answer")
+                refusals.append(AlStateError(slave.position, state, 0, 0))
+        return refusals
 
     def _await(self, state: ALState, slaves: list[EthercatSlave], timeout: float) -> None:
         """Wait until every slave reports ``state``; AlStateError with the code if not."""
@@ -1116,41 +1221,33 @@ class EthercatTransport(Transport):
                     except ValueError as exc:       # mapped other than the drive expects
                         self._errors[unit] = str(exc)
                         continue
-                    # SOEM runs this when it reconfigures the slave (after a power cycle,
-                    # at PRE-OP): what was written there at start is written again
-                    slave._soem.config_func = self._preop_hook(slave, setup)
+                    # Written again when the slave comes back through INIT (after a
+                    # power cycle), at PRE-OP: what was written there at start.
+                    slave.preop_setup = self._preop_setup(slave, setup)
 
     @staticmethod
-    def _preop_hook(slave: EthercatSlave, setup: SlaveSetup) -> Callable[[int], None]:
-        """Return SOEM's PRE-OP -> SAFE-OP hook that writes the slave's set-up again.
+    def _preop_setup(slave: EthercatSlave, setup: SlaveSetup) -> Callable[[], None]:
+        """Return what writes the slave's set-up again at PRE-OP, before SAFE-OP.
 
-        Runs in the supervisor's reconfiguration (its state lock held, the process-data
-        thread does not use the mailbox), so it talks to pysoem directly; a failure is
-        logged and the slave then stays below SAFE-OP with its AL status code.
+        The supervisor runs it (``EthercatSegment._bring_up``); an SDO failure raises,
+        and the slave then stays in PRE-OP, with its drive offline, until it takes it.
         """
-        def write(index: int, subindex: int, data: bytes) -> None:
-            slave._soem.sdo_write(index, subindex, bytes(data))
-
-        def hook(position: int) -> None:
-            try:
-                if not setup.fixed_mapping:
-                    for index, entries in setup.pdos.mappings.items():
-                        write(index, 0, b'\x00')
-                        for sub, entry in enumerate(entries, 1):
-                            write(index, sub, struct.pack('<I', entry))
-                        write(index, 0, bytes([len(entries)]))
-                    for assign, indices in ((0x1C12, setup.pdos.rx), (0x1C13, setup.pdos.tx)):
-                        write(assign, 0, b'\x00')
-                        for sub, index in enumerate(indices, 1):
-                            write(assign, sub, struct.pack('<H', index))
-                        write(assign, 0, bytes([len(indices)]))
-                for index, subindex, data in setup.startup:
-                    write(index, subindex, data)
-                log.info('EtherCAT slave %d: PDO set-up written again', position + 1)
-            except Exception as exc:  # noqa: BLE001 - pysoem raises several kinds here
-                log.warning('EtherCAT slave %d: PDO set-up not written again: %r',
-                            position + 1, exc)
-        return hook
+        def write_again() -> None:
+            if not setup.fixed_mapping:
+                for index, entries in setup.pdos.mappings.items():
+                    slave.sdo_write(index, 0, b'\x00')
+                    for sub, entry in enumerate(entries, 1):
+                        slave.sdo_write(index, sub, struct.pack('<I', entry))
+                    slave.sdo_write(index, 0, bytes([len(entries)]))
+                for assign, indices in ((0x1C12, setup.pdos.rx), (0x1C13, setup.pdos.tx)):
+                    slave.sdo_write(assign, 0, b'\x00')
+                    for sub, index in enumerate(indices, 1):
+                        slave.sdo_write(assign, sub, struct.pack('<H', index))
+                    slave.sdo_write(assign, 0, bytes([len(indices)]))
+            for index, subindex, data in setup.startup:
+                slave.sdo_write(index, subindex, data)
+            log.info('EtherCAT slave %d: PDO set-up written again', slave.position + 1)
+        return write_again
 
     def _locate(self, segment: EthercatSegment) -> None:
         """Find each attached slave: by position, or by its station alias (SII word 4)."""
@@ -1329,6 +1426,13 @@ class EthercatTransport(Transport):
             self.stats.bad_frames = stats.wkc_errors
             self.stats.timeouts = stats.lost_frames
         self.count_unit(unit, 'transactions')
+        if not slave.inputs_time and not slave.lost:
+            # The segment has just opened (its first cycles are under way): a connect
+            # right after it failed on "no process data yet", closed the segment, and
+            # took one to three more opens (outside audit).
+            first = time.monotonic() + self.stale_after
+            while not slave.inputs_time and time.monotonic() < first:
+                time.sleep(self.settings.cycle_time_s / 2)
         age = time.monotonic() - slave.inputs_time
         if slave.lost:
             self.count_unit(unit, 'timeouts')
