@@ -788,6 +788,23 @@ def test_bus_node_refuses_drive_settings_that_would_reach_no_drive(ros_context, 
                     comand_timeout=0.1)
 
 
+def test_bus_node_refuses_a_realtime_priority_given_beside_the_bus_file(ros_context,
+                                                                        tmp_path):
+    """``-p realtime_priority:=10`` read back 10, and the bus thread ran at 0 (audit)."""
+    with pytest.raises(ParameterError, match=r'realtime_priority 10 given to the bus node: '
+                                             r'.*bus file only \(bus: realtime_priority, 0'):
+        bus_node_of(ros_context, tmp_path, bus_document('/dev/null', '/x'),
+                    realtime_priority=10)
+    document = bus_document('/dev/null', '/x')
+    document['bus']['realtime_priority'] = 10
+    node = bus_node_of(ros_context, tmp_path, document, realtime_priority=10)   # the same
+    try:
+        assert node.get_parameter('realtime_priority').value == 10
+    finally:
+        for each in (*node.drive_nodes, node):
+            each.destroy_node()
+
+
 def test_a_profile_without_a_map_for_the_transport_is_refused():
     """cia402_velocity (CANopen only) on a serial line went out as reads of no register map."""
     from vfd_ros2.control.factory import build_controller

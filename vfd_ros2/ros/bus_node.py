@@ -101,10 +101,15 @@ class BusNode(Node):
             if value != configured:
                 self.bus.set_rate(float(value))
             priority = rates['realtime_priority']
-            self.declare_parameter(
-                'realtime_priority', int(self.config.settings.get('realtime_priority', 0)),
-                descriptor(priority.description + ' (set it in the bus file)', priority.default,
-                           priority.minimum, priority.maximum))
+            in_file = int(self.config.settings.get('realtime_priority', 0))
+            given = self.declare_parameter('realtime_priority', in_file, descriptor(
+                priority.description + ' (set it in the bus file)', priority.default,
+                priority.minimum, priority.maximum)).value
+            if given != in_file:
+                # Shown, and not what the bus thread runs at (outside audit): refused.
+                raise ParameterError(
+                    f'realtime_priority {given} given to the bus node: the bus thread takes '
+                    f'it from the bus file only (bus: realtime_priority, {in_file} there)')
             # Declared before the live-parameter check is installed (it refuses the rest).
             joint_topics = {name: self.declare_parameter(name, default, descriptor(
                 description, default, *limits)).value
