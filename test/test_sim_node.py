@@ -7,7 +7,7 @@ import uuid
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -160,3 +160,19 @@ def test_a_canopen_line_takes_silence_and_faults_too(sim_node):
     reply = call(client, InjectFault, 'sim_drive/inject_fault',
                  InjectFault.Request(unit_id=1, code=0x7500, subcode=0, latched=True))
     assert reply.success, reply.message
+
+
+def test_every_parameter_answers_one_get_parameters_call_for_them_all(sim_node, tmp_path):
+    """A parameter without a value fails every get_parameters request that names it.
+
+    initial_values had none when not given: ``ros2 param dump`` and ``ros2 param get
+    ... initial_values`` got no values at all (outside audit).
+    """
+    node, client = sim_node(port=str(tmp_path / 'line'))
+    names = list(node.list_parameters([], 0).names)
+    reply = call(client, GetParameters, '/simtest/sim_drive/get_parameters',
+                 GetParameters.Request(names=names))
+    assert len(reply.values) == len(names), names
+    assert all(value.type != ParameterType.PARAMETER_NOT_SET for value in reply.values)
+    node2, _ = sim_node(port=str(tmp_path / 'line2'), initial_values=['B04.02=2.5'])
+    assert node2.drives[0].value('B04.02') == 2.5

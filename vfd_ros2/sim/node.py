@@ -34,7 +34,6 @@ from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from vfd_ros2.srv import InjectFault
 
@@ -55,7 +54,7 @@ def parse_initial_values(items: list[str]) -> dict[str, float]:
     """["B04.02=1.0", ...] -> {"B04.02": 1.0}; ValueError names the bad item."""
     values: dict[str, float] = {}
     for item in items:
-        code, sep, value = item.partition('=')
+        code, sep, value = item.partition('=') if isinstance(item, str) else ('', '', '')
         if not sep:
             raise ValueError(f'initial value {item!r} is not CODE=VALUE')
         values[code.strip()] = float(value)
@@ -69,16 +68,20 @@ class SimDriveNode(Node):
         self.live_parameters: list[str] = []
         declare = self._declare
         profile = load_profile(declare('profile', 'boneng_am', 'profile of the simulated drives'))
-        transport = declare('transport', 'modbus_rtu', 'line type: modbus_rtu')
+        transport = declare('transport', 'modbus_rtu',
+                            'line type: modbus_rtu, modbus_tcp or canopen')
         port = declare('port', '/tmp/vfd_ros2/sim/line0', 'stable path of the emulated port')
         unit_ids = list(declare('unit_ids', [1], 'slave ids served on the line'))
         baudrate = int(declare('baudrate', 0, "bit/s; 0 = the profile's factory setting"))
         wire_time = bool(declare('emulate_wire_time', False, 'delay replies by wire time'))
         corrupt = float(declare('corrupt_rate', 0.0, 'fraction of replies corrupted (RTU)',
                                 0.0, 1.0, live=True))
-        initial = parse_initial_values(declare(
-            'initial_values', Parameter.Type.STRING_ARRAY,
-            'CODE=VALUE parameter values at power-up') or [])
+        # A value, if empty: a parameter declared without one answers no get_parameters
+        # request that names it, not even one for all of them (ros2 param dump).
+        initial = parse_initial_values(self.declare_parameter(
+            'initial_values', [], ParameterDescriptor(
+                description='CODE=VALUE parameter values at power-up, e.g. ["B04.02=1.0"]',
+                dynamic_typing=True)).value)
         self._declare_list('silent_unit_ids', 'drives that do not hear or answer (cable '
                            'unplugged), e.g. [2]; [] plugs every drive back')
         self._declare_list('refused', 'parameter codes every drive answers with "illegal '
