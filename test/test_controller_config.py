@@ -234,3 +234,22 @@ def test_every_numeric_setting_has_a_range():
                  if isinstance(s.default, (int, float)) and not isinstance(s.default, bool)
                  and (s.minimum is None or s.maximum is None)]
     assert unbounded == []
+
+
+def test_standstill_is_two_motor_rpm_or_the_at_speed_tolerance_not_a_share_of_the_limit():
+    """A stop is verified at standstill (outside audit of the first version).
+
+    2 % of max_velocity made a direct-drive wheel reading 1 rpm at rest (0.105 rad/s)
+    fail every stop with max_velocity 5, and called a motor coasting at 16 rpm still
+    with max_velocity 100.
+    """
+    from vfd_ros2.control.controller import standstill
+    one_rpm = 2 * math.pi / 60
+    for limit in (5.0, 100.0):
+        direct = standstill(ControllerConfig(max_velocity=limit), VelocityScaling())
+        assert direct == pytest.approx(2 * one_rpm)            # 1 rpm at rest is still
+        assert direct < 16 * one_rpm                            # 16 rpm coasting is not
+        geared = standstill(ControllerConfig(max_velocity=limit),
+                            VelocityScaling(gear_ratio=10.0, invert_direction=True))
+        assert geared == pytest.approx(0.1)                     # at_speed_tolerance
+    assert standstill(ControllerConfig(), None) == pytest.approx(0.1)   # a plugin's drive

@@ -26,6 +26,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -52,12 +53,18 @@ NEAR_TRIP = 0.75
 #: the interval a re-plan is sized for, as a multiple of the gap that prompted it
 ADDRESSING_HEADROOM = 1.25
 
-#: a command that comes after the watchdog stopped the drive, within this multiple of
-#: command_timeout after the one before, shows a commander slower than the timeout
-#: (``ros2 topic pub -r 1`` with command_timeout 0.5: the wheel stops between commands)
+#: a command that comes after the watchdog stopped the running drive, within this
+#: multiple of command_timeout (or COMMAND_GAP_SPAN) after the one before, shows a
+#: commander slower than the timeout (``ros2 topic pub -r 1`` against 0.5 s: the
+#: wheel stops between commands)
 COMMAND_GAP_FACTOR = 4.0
-#: s such a gap stays a WARN in /diagnostics, and between two log lines about them
+COMMAND_GAP_SPAN = 2.5
+#: s within which a second such gap makes a WARN in /diagnostics (for as long again) and
+#: a log line (at most one per this): one pause alone is only counted
 COMMAND_GAP_MEMORY = 10.0
+#: motor rpm still taken as standstill (a speed read in whole rpm shows a motor at rest
+#: as 1 rpm now and then): at the output shaft, if more than at_speed_tolerance
+STANDSTILL_MOTOR_RPM = 2.0
 
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
@@ -110,13 +117,15 @@ class ControllerConfig:
             raise ParameterError(f'realtime_priority must be 0..99, got {self.realtime_priority}')
 
 
-def standstill(config: ControllerConfig) -> float:
+def standstill(config: ControllerConfig, scaling: VelocityScaling | None) -> float:
     """Return the measured speed (rad/s) at or below which a stopped drive stands still.
 
-    At least 2 % of max_velocity: a direct-drive wheel's 1 rpm, one step of a speed
-    in whole rpm, is 0.1 rad/s, and a stop must not fail on that.
+    at_speed_tolerance, or STANDSTILL_MOTOR_RPM at the output shaft where that is more
+    (a direct-drive wheel's 1 rpm is 0.105 rad/s: a stop must not fail on it). Not a
+    share of max_velocity: a high limit made a motor coasting at 16 rpm "still".
     """
-    return max(config.at_speed_tolerance, 0.02 * config.max_velocity)
+    motor = abs(scaling.motor_rpm_to_output(STANDSTILL_MOTOR_RPM)) if scaling else 0.0
+    return max(config.at_speed_tolerance, motor)
 
 
 def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
@@ -164,11 +173,12 @@ class DriveController:
         self._written_setpoints: dict[str, int] = {}
         self._rejected = 0
         self._clamped = 0
+        self._watchdog_stopped = False    # the watchdog withdrew a run: the next command?
         self._command_gaps = 0            # commands after a watchdog stop (a slow commander)
-        self._command_gap = ''            # the last one, described
+        self._command_gap_times: deque[float] = deque(maxlen=2)
+        self._command_gap = ''            # the last one, described, when repeated
         self._command_gap_at = -math.inf  # ... and when it came
         self._command_gap_logged_at = -math.inf
-        self._command_gaps_logged = 0
         self.intent = Intent(enabled=config.auto_enable)
         self.link = LinkSupervisor(drive.hardware_id, config.comm_loss_threshold,
                                    config.reconnect_period, clock)
@@ -181,7 +191,7 @@ class DriveController:
         self.services = ServiceActions(
             drive, self.intent, lambda: self._reading, self._commands_fresh,
             self.check_parameter_write, config.action_timeout, config.stop_timeout, clock,
-            standstill(config))
+            standstill(config, getattr(drive, 'scaling', None)))
         self._loop: CycleLoop | None = None
         #: what to know about the thread that runs this drive (its own, or a bus's)
         self.loop_notes: tuple[str, ...] = ()
@@ -283,7 +293,9 @@ class DriveController:
             expired = watchdog.expired
             urgent = (clamped != self._velocity or expired) and \
                 not self.drive.transport.commands_keep_the_cycle
-            gap_note = self._note_command_gap(watchdog.age, watchdog.limit) if expired else ''
+            gap_note = self._note_command_gap(watchdog.age, watchdog.limit) if \
+                self._watchdog_stopped and expired else ''
+            self._watchdog_stopped = False
             self._velocity = clamped
             watchdog.feed()
             self._command_pending |= urgent
@@ -298,20 +310,26 @@ class DriveController:
         return outcome
 
     def _note_command_gap(self, gap: float, limit: float) -> str:
-        """Count a command that comes soon after the watchdog stopped the drive.
+        """Count the first command after the watchdog stopped the running drive.
 
         Called under the lock with the gap to the command before (inf after a
-        connect, a stop or a fault: those forget the commands). Returns the line
-        to log, at most one per COMMAND_GAP_MEMORY.
+        connect, a stop or a fault: those forget the commands). Counted when the
+        gap is short enough to be a commander's period; a second within
+        COMMAND_GAP_MEMORY is described (WARN) and returned to be logged, at most
+        one line per COMMAND_GAP_MEMORY: a single pause is only counted.
         """
-        if gap > COMMAND_GAP_FACTOR * limit:
+        if gap > max(COMMAND_GAP_FACTOR * limit, COMMAND_GAP_SPAN):
             return ''
         self._command_gaps += 1
         now = self._clock()
-        self._command_gap = (f'velocity commands came {gap:.2g} s apart, longer than '
-                             f'command_timeout {limit:g} s: the watchdog stops the drive '
-                             f'between them ({self._command_gaps} times); publish them '
-                             'more often or raise command_timeout')
+        times = self._command_gap_times
+        times.append(now)
+        if len(times) < 2 or now - times[0] > COMMAND_GAP_MEMORY:
+            return ''
+        self._command_gap = (f'velocity commands reached the node {gap:.2g} s apart, longer '
+                             f'than command_timeout {limit:g} s: the watchdog stopped the '
+                             f'drive between them ({self._command_gaps} so far); publish '
+                             'them more often or raise command_timeout')
         self._command_gap_at = now
         if now - self._command_gap_logged_at < COMMAND_GAP_MEMORY:
             return ''
@@ -412,7 +430,7 @@ class DriveController:
             self.plan_host_loss()
         self.services.action_timeout = new.action_timeout
         self.services.stop_timeout = new.stop_timeout
-        self.services.standstill = standstill(new)
+        self.services.standstill = standstill(new, getattr(self.drive, 'scaling', None))
         if self._loop is not None:
             self._loop.set_period(new.cycle_period)
         return new
@@ -473,6 +491,7 @@ class DriveController:
         """
         with self._lock:
             self._watchdog.reset()
+            self._watchdog_stopped = False
 
     def start(self) -> None:
         """Run this drive in its own thread (a bus runs several in one: see bus.py)."""
@@ -696,7 +715,8 @@ class DriveController:
         with self._lock:
             velocity = self._velocity
             self._command_pending = False
-        run = decide(self.intent, self._conditions())[0] is RunState.RUNNING
+        state = decide(self.intent, self._conditions())[0]
+        run = state is RunState.RUNNING
         services = self.services
         reassert = services.reassert_run if run else services.reassert_idle
         services.reassert_idle = services.reassert_run = False
@@ -717,6 +737,9 @@ class DriveController:
             self._command_refused = refused
             raise
         self._command_refused = ''
+        if self._run_written and state is RunState.WATCHDOG:
+            with self._lock:
+                self._watchdog_stopped = True     # a run withdrawn for want of commands
         self._run_written = run
         if run:
             self._run_asked_at = self._clock()
