@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import time
 
@@ -586,6 +587,34 @@ def test_a_stop_is_verified_at_standstill_not_when_the_drive_drops_its_run_state
     assert not reply.success
     assert 'the drive reports not running, but still measures' in reply.message, reply.message
     assert sim.state is State.SWITCHED_ON and _motor_rpm_to_wheel(sim.speed_rpm) > 1.0
+
+
+def test_a_ramp_slower_than_stop_timeout_is_told_not_counted_as_a_start_from_elsewhere(
+        make_can_harness, caplog):
+    """A CiA 402 drive stays in operation enabled through its ramp (0x605C = 1).
+
+    Ramping down past stop_timeout was counted as an unexpected start and shown as an
+    ERROR, "look for another run source" (outside audit). A speed that keeps falling is
+    a slow ramp: one warning; a drive that runs on at speed is still the error.
+    """
+    h = make_can_harness(node_parameters={'auto_enable': True, 'stop_timeout': 0.5})
+    wheel, sim = h.wheels[1], h.sims[1]
+    _set(wheel, 'profile_deceleration', 60.0)               # 191 rpm: ~3 s
+    wheel.stream(2.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'at 2 rad/s')
+    with caplog.at_level(logging.WARNING):
+        wheel.stop_stream()
+        wheel.wait_status(lambda s: s.watchdog_tripped, 2.0, 'watchdog')
+        time.sleep(1.6)                                     # three stop_timeouts, ramping
+        status = wheel.status
+        assert status.running and sim.speed_rpm > 0, (status.stop_reason, sim.speed_rpm)
+        assert status.unexpected_starts == 0 and 'stop_timeout' not in status.stop_reason
+        wait_for(lambda: sim.speed_rpm == 0.0 and sim.state is State.SWITCHED_ON, 4.0,
+                 'ramped down')
+    told = [r.getMessage() for r in caplog.records if 'still ramping down' in r.getMessage()]
+    assert len(told) == 1, told
+    assert wheel.status.unexpected_starts == 0
 
 
 def test_an_idle_drive_is_enabled_before_any_command(make_can_harness):

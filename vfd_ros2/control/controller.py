@@ -205,6 +205,8 @@ class DriveController:
         self._not_running_since: float | None = None  # told to run, not running since
         self._lost_run = ''             # why a drive told to run does not, once it is clear
         self._running_idle_since: float | None = None   # running while held idle, since
+        self._running_idle_speed = math.nan  # |measured speed| then (a ramp brings it down)
+        self._slow_ramp_told = False
         self._running_idle_counted = False  # that episode is in unexpected_starts already
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._unexpected_starts = 0
@@ -788,6 +790,7 @@ class DriveController:
         self._last_running = False
         self._running_idle_since, self._running_idle_counted = None, False
         self._not_stopping = ''         # (nothing was written while it was offline)
+        self._slow_ramp_told = False
         self._polled_at, self._near_trips, self._raise_refused = None, 0, 0.0
         self._check_comm_fault = True
         # Online from here, but nothing is known of the drive's state until a status
@@ -937,9 +940,23 @@ class DriveController:
         once in unexpected_starts (unless it started so), logged, and shown in
         ~/status and /diagnostics (ERROR) until it stops.
         """
+        speed = abs(self._reading.measured_velocity)     # (NaN: not measured)
         if self._running_idle_since is None:
-            self._running_idle_since = now
+            self._running_idle_since, self._running_idle_speed = now, speed
         if self._not_stopping or now - self._running_idle_since <= self.config.stop_timeout:
+            return
+        if speed < self._running_idle_speed - self.services.standstill:
+            # Still ramping down, only slower than stop_timeout allows (a CiA 402 drive
+            # stays in operation enabled through its ramp): not a run from elsewhere. It
+            # was counted and shown as one (outside audit); a next window without
+            # progress is.
+            if not self._slow_ramp_told:
+                log.warning('%s: held idle, the drive is still ramping down (%.3g rad/s) '
+                            'after stop_timeout %g s: its deceleration is slower than '
+                            'stop_timeout allows', self.drive.hardware_id, speed,
+                            self.config.stop_timeout)
+                self._slow_ramp_told = True
+            self._running_idle_since, self._running_idle_speed = now, speed
             return
         self._not_stopping = (f'held idle, the drive has reported running for more than '
                               f'stop_timeout {self.config.stop_timeout:g} s although the idle '
@@ -970,7 +987,7 @@ class DriveController:
             self._check_not_stopping(now)
         else:
             self._running_idle_since, self._running_idle_counted = None, False
-            self._not_stopping = ''
+            self._not_stopping, self._slow_ramp_told = '', False
         self._last_running = running
         # The other way round: told to run, the drive does not (it reset, was stopped
         # at its keypad, an inhibit): report it rather than show "running" with OK
