@@ -106,9 +106,12 @@ def test_drive_node_reaches_op_follows_velocity_and_reports(start_segment, make_
 
 
 @contextlib.contextmanager
-def bus_node_on_segment(ros_context, veth_link, tmp_path,
-                        profiles: tuple[str, str]) -> Iterator[BusNode]:
-    """Spin a bus_node over the emulated segment: wheels 'left' (slave 1), 'right' (2)."""
+def bus_node_on_segment(ros_context, veth_link, tmp_path, profiles: tuple[str, str],
+                        *settings: dict[str, Any]) -> Iterator[BusNode]:
+    """Spin a bus_node over the emulated segment: wheels 'left' (slave 1), 'right' (2).
+
+    ``settings``: each wheel's own drive settings beside the common ones, in order.
+    """
     prefix = f'/b{uuid.uuid4().hex[:6]}'
     config = tmp_path / 'ec_bus.yaml'
     config.write_text(yaml.safe_dump({
@@ -116,7 +119,8 @@ def bus_node_on_segment(ros_context, veth_link, tmp_path,
                 'transport.interface': veth_link.master_interface,
                 'transport.namespace': veth_link.namespace, 'control_rate': 50.0},
         'drives': {name: {'namespace': f'{prefix}/{name}', 'drive.profile': profile,
-                          'transport.unit_id': unit, 'auto_enable': True, **BASE}
+                          'transport.unit_id': unit, 'auto_enable': True, **BASE,
+                          **(settings[unit - 1] if len(settings) >= unit else {})}
                    for unit, (name, profile) in enumerate(zip(('left', 'right'), profiles),
                                                           start=1)}}))
     bus = BusNode(context=ros_context, namespace=prefix, parameter_overrides=[
@@ -170,6 +174,24 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
         assert sim.drive(0)['mode'] == 9                         # HD2 in csv
         assert sim.drive(1)['controlword'] & 0x70 == 0x70        # MH CoE_VL: ramp bits set
         assert sim.drive(1)['velocity_rpm'] > 90.0
+
+
+def test_each_slave_of_a_bus_holds_its_own_drives_sm_watchdog(ros_context, start_segment,
+                                                               veth_link, tmp_path):
+    """A drive that asks for no SM watchdog gets none, beside one that asks for 0.3 s.
+
+    The smallest asked for went to every slave: the first reported "off" while its
+    slave held the other's 0.3 s (outside audit).
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
+    with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2'),
+                             {'drive_comm_timeout': 0.0}, {'drive_comm_timeout': 0.3}) as bus:
+        left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
+        wait_for(lambda: left.state.online and right.state.online, 10.0, 'both online')
+        assert sim.esc(0)['watchdog_s'] == 0.0, sim.esc(0)
+        assert sim.esc(1)['watchdog_s'] == pytest.approx(0.3, abs=0.001), sim.esc(1)
+        assert not left.state.protection.active, left.state.protection
+        assert right.state.protection.timeout == pytest.approx(0.3), right.state.protection
 
 
 def test_identity_mismatch_is_a_clear_error(start_segment, make_wheel):

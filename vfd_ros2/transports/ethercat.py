@@ -1176,10 +1176,10 @@ class EthercatTransport(Transport):
             if self._segment is not None:
                 return
             self._errors.clear()
-            watchdogs = [s for s in self._watchdogs.values()]
-            active = [s for s in watchdogs if s > 0]
-            watchdog = min(active) if active else (0.0 if watchdogs else None)
-            settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': watchdog})
+            # Each slave its own drive's SM watchdog (0 = off; a slave no drive drives
+            # keeps its ESC's): the smallest for all made a drive that asked for none
+            # report "off" while its slave held another's 0.3 s (outside audit).
+            settings = SegmentSettings(**{**self.settings.__dict__, 'watchdog_s': None})
             segment = EthercatSegment(settings, on_slave_lost=self._on_lost,
                                       on_slave_returned=self._on_returned,
                                       on_slave_fell=self._on_fell)
@@ -1189,6 +1189,10 @@ class EthercatTransport(Transport):
                 for unit, setup in sorted(self._setups.items()):
                     if unit not in self._errors:
                         self._prepare(segment, identities, setup, self._where[unit])
+                        seconds = self._watchdogs.get(unit)
+                        if seconds is not None:
+                            segment._set_watchdog(segment.slave(self._where[unit] - 1),
+                                                  seconds)
                 # no SYNC0 for a slave without DC, nor for one its drive cannot use (a
                 # refused cycle would keep the whole segment below SAFE-OP)
                 free_running = frozenset(self._where[unit] - 1
