@@ -439,6 +439,48 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
 
 
+def test_a_slave_that_refuses_its_set_up_after_a_power_cycle_stays_in_pre_op_and_says_why(
+        ros_context, start_segment, veth_link, tmp_path, caplog):
+    """A slave whose set-up aborts after a power cycle must not run in its power-on mode.
+
+    Its mode of operation write aborts: it stays in PRE-OP, its drive offline naming
+    the abort; the set-up is tried again once a second and told once (each
+    supervisor pass wrote it and logged a line, 1000 in 3 s: outside audit); the
+    other wheel runs on.
+    """
+    sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
+    with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
+        left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
+
+        def both_at(velocity: float) -> bool:
+            for c in (left, right):
+                c.command_velocity(velocity)
+            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
+                       for c in (left, right))
+        wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
+        sim.call(0, 'abort_writes', 0x6060, 0x06090030)
+        with caplog.at_level(logging.WARNING):
+            sim.power_cycle(0)
+            wait_for(lambda: (right.command_velocity(1.0), 'is not written again at PRE-OP'
+                              in left.state.stop_reason)[1], 5.0, 'left offline, saying why')
+            writes = sim.drive(0)['sdo_writes']
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                right.command_velocity(1.0)
+                assert not left.state.online and right.state.running, (left.state, right.state)
+                time.sleep(0.05)
+            assert sim.drive(0)['al_state'] == 'PRE_OP', sim.drive(0)
+            # ~16 writes a try, one try a second: not one a pass (40 passes in 2 s)
+            assert sim.drive(0)['sdo_writes'] - writes < 80, sim.drive(0)
+        told = [r.getMessage() for r in caplog.records if 'set-up not written' in
+                r.getMessage()]
+        assert len(told) == 1, told
+        assert '0x06090030' in left.state.stop_reason, left.state.stop_reason
+        sim.call(0, 'abort_writes', 0x6060, 0)
+        wait_for(lambda: both_at(1.0), 10.0, 'both moving once the set-up is taken')
+        assert sim.drive(0)['mode'] == 9, sim.drive(0)
+
+
 def test_sync_mode_dc(start_segment, make_wheel):
     sim = start_segment([IMO_HD2_EC_TX508])
     hd2 = make_wheel('imo_hd2', **{'transport.sync_mode': 'dc', 'transport.cycle_time': 0.001})

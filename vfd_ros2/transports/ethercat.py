@@ -35,6 +35,7 @@ from __future__ import annotations
 import enum
 import fcntl
 import logging
+import math
 import os
 import re
 import statistics
@@ -79,6 +80,8 @@ MISSED_CYCLES_RECENT = 10.0
 LOCK_DIR = '/run/lock' if os.path.isdir('/run/lock') else tempfile.gettempdir()
 
 
+#: s between two tries of a slave's set-up that failed at PRE-OP (SDO aborts)
+SETUP_RETRY_S = 1.0
 #: ESC registers (ETG.1000.4 table 31): FMMU and sync manager counts, their settings
 ESC_COUNTS = 0x0004
 ESC_FMMUS = 0x0600
@@ -86,24 +89,29 @@ ESC_SYNC_MANAGERS = 0x0800
 FMMU_BYTES, SYNC_MANAGER_BYTES = 16, 8
 
 
-def _read_esc_setup(slave: 'EthercatSlave') -> tuple[bytes, bytes] | None:
+def _read_esc_setup(slave: 'EthercatSlave', quietly: bool = False
+                    ) -> tuple[bytes, bytes] | None:
     """Read a configured slave's sync manager and FMMU registers (None if unanswered).
 
     SOEM's reconfiguration writes the same from its own tables; pysoem does not
-    show those, the ESC does.
+    show those, the ESC does. Tried three times (a frame lost); the supervisor
+    tries again while the slave is in its state.
     """
     soem = slave._soem   # noqa: SLF001 - pysoem's FPRD primitive
-    try:
-        fmmus, sync_managers = soem._fprd(ESC_COUNTS, 2)
-        fmmus, sync_managers = min(fmmus, 16), min(sync_managers, 16)
-        return (soem._fprd(ESC_SYNC_MANAGERS, SYNC_MANAGER_BYTES * sync_managers)
-                if sync_managers else b'',
-                soem._fprd(ESC_FMMUS, FMMU_BYTES * fmmus) if fmmus else b'')
-    except pysoem.WkcError:
-        log.warning('EtherCAT slave %d: its sync managers could not be read; after a power '
-                    "cycle SOEM's reconfiguration brings it back (the process waits in it)",
-                    slave.position + 1)
-        return None
+    for _ in range(3):
+        try:
+            fmmus, sync_managers = soem._fprd(ESC_COUNTS, 2)
+            fmmus, sync_managers = min(fmmus, 16), min(sync_managers, 16)
+            return (soem._fprd(ESC_SYNC_MANAGERS, SYNC_MANAGER_BYTES * sync_managers)
+                    if sync_managers else b'',
+                    soem._fprd(ESC_FMMUS, FMMU_BYTES * fmmus) if fmmus else b'')
+        except pysoem.WkcError:
+            continue
+    if not quietly:
+        log.warning('EtherCAT slave %d: its sync managers could not be read (read again '
+                    "while it runs); a power cycle before that is brought back by SOEM's "
+                    'reconfiguration, which holds the process while it waits', slave.position + 1)
+    return None
 
 
 class MasterLock:
@@ -338,6 +346,9 @@ class EthercatSlave:
         #: writes its set-up again at PRE-OP (PDO mapping, start-up objects); raises
         self.preop_setup: Callable[[], None] | None = None
         self.setup_due = False                # came back through INIT: preop_setup first
+        #: why preop_setup failed last ('' = it did not), and when it may be tried again
+        self.setup_error = ''
+        self.setup_retry_at = 0.0
         soem_slave.add_emergency_callback(self._on_emergency)
 
     # -- mailbox -----------------------------------------------------------------------
@@ -751,14 +762,19 @@ class EthercatSegment:
     def _supervise(self) -> None:
         settings = self.settings
         next_poll = next_state_check = time.monotonic()
+        checked = -math.inf
         while not self._stop.is_set():
             troubled = self._trouble.wait(settings.supervise_s)
-            if self._stop.is_set():
+            # At most one state check per supervise_s: while a slave is below its state
+            # the WKC drops every cycle, and each drop ran a check (480/s, each one
+            # writing the slave's set-up again: outside audit).
+            if self._stop.wait(max(0.0, checked + settings.supervise_s - time.monotonic())):
                 return
             if troubled or any(slave.lost for slave in self._slaves) or \
                     time.monotonic() >= next_state_check:
                 self._trouble.clear()
-                next_state_check = time.monotonic() + settings.state_poll_s
+                checked = time.monotonic()
+                next_state_check = checked + settings.state_poll_s
                 try:
                     self._check_states()
                 except TransportError as exc:
@@ -781,6 +797,8 @@ class EthercatSegment:
             if slave.state is target and not slave.al_status & AL_ERROR_FLAG:
                 if slave.lost:
                     self._mark_returned(slave)
+                if slave.esc_setup is None and target >= ALState.SAFE_OP:
+                    slave.esc_setup = _read_esc_setup(slave, quietly=True)
                 continue
             with self._state_lock:
                 soem = slave._soem
@@ -824,8 +842,12 @@ class EthercatSegment:
         if slave.state is ALState.INIT:
             slave.setup_due = True
             if slave.esc_setup is None:
+                # Never read (no answer at start, nor since in OP): SOEM's own, which
+                # waits (up to 2 s per state, the process with it), the set-up as its hook.
+                setup = slave.preop_setup
+                soem.config_func = (lambda position: setup()) if setup else None
                 with self._state_lock:
-                    soem.reconfig(timeout=3000)     # (not read at start: SOEM's own, waiting)
+                    soem.reconfig(timeout=3000)
                 return
             try:
                 for address, data in zip((ESC_SYNC_MANAGERS, ESC_FMMUS), slave.esc_setup):
@@ -837,13 +859,20 @@ class EthercatSegment:
             following = ALState.PRE_OP
         else:
             if slave.setup_due and slave.preop_setup is not None:
+                if time.monotonic() < slave.setup_retry_at:
+                    return
                 try:
                     slave.preop_setup()
                 except (TransportError, ProtocolException) as exc:
-                    log.warning('EtherCAT slave %d: set-up not written again at PRE-OP, so '
-                                'it stays there: %s', slave.position + 1, exc)
+                    # Tried again every SETUP_RETRY_S, told once: each pass wrote it
+                    # and logged a line (1000 lines in 3 s: outside audit).
+                    slave.setup_retry_at = time.monotonic() + SETUP_RETRY_S
+                    if not slave.setup_error:
+                        log.warning('EtherCAT slave %d: set-up not written again at PRE-OP, '
+                                    'so it stays there: %s', slave.position + 1, exc)
+                    slave.setup_error = f'its set-up is not written again at PRE-OP: {exc}'
                     return
-            slave.setup_due = False
+            slave.setup_due, slave.setup_error = False, ''
             following = ALState.SAFE_OP
         with self._state_lock:
             soem.state = int(following)
@@ -1355,8 +1384,19 @@ class EthercatTransport(Transport):
         slave = self._slave(unit)
         slave.read_state()
         if slave.state is not ALState.OP or slave.al_status & AL_ERROR_FLAG:
-            raise AlStateError(slave.position, ALState.OP, slave.al_status,
-                               slave.al_status_code)
+            refused = AlStateError(slave.position, ALState.OP, slave.al_status,
+                                   slave.al_status_code)
+            if slave.setup_error:
+                raise EthercatError(f'{refused}; {slave.setup_error}') from refused
+            raise refused
+        # Back in OP before the supervisor's next pass marks it back: that pass is
+        # waited for (the connect failed on "lost" and cost one more: outside audit).
+        back_by = time.monotonic() + 4 * self.settings.supervise_s
+        while slave.lost and time.monotonic() < back_by:
+            time.sleep(self.settings.supervise_s / 4)
+        if slave.lost:
+            raise CommTimeout(f'EtherCAT slave {unit} is back in OP but still lost to the '
+                              "segment's supervisor")
         with self._lock:
             self._fell.pop(unit, None)
             self._open_units.add(unit)

@@ -194,10 +194,14 @@ class Cia402VelocityDrive:
     """A ``SlaveApplication``: one CiA 402 velocity drive built from a ``DriveSpec``."""
 
     #: methods the segment's control channel may call (test and demo hooks)
-    CONTROLS = frozenset({'inject_fault', 'clear_fault_cause', 'refuse_state', 'snapshot'})
+    CONTROLS = frozenset({'inject_fault', 'clear_fault_cause', 'refuse_state', 'abort_writes',
+                          'snapshot'})
 
     def __init__(self, spec: DriveSpec) -> None:
         self.spec = spec
+        # Kept through a power cycle, as firmware is: SDO writes refused by index.
+        self._aborting: dict[int, int] = {}
+        self.sdo_writes = 0
         self.power_on()
 
     def power_on(self) -> None:
@@ -257,7 +261,8 @@ class Cia402VelocityDrive:
         return self.od.read(index, subindex)
 
     def write_object(self, index: int, subindex: int, data: bytes) -> int:
-        code = self.od.write(index, subindex, data)
+        self.sdo_writes += 1
+        code = self._aborting.get(index) or self.od.write(index, subindex, data)
         if code == 0:
             if 0x1600 <= index <= 0x1BFF or index in (0x1C12, 0x1C13):
                 self._layout_cache.clear()
@@ -437,6 +442,13 @@ class Cia402VelocityDrive:
         """Remove the cause of a persistent fault: a fault reset is accepted again."""
         self._fault_persistent = False
 
+    def abort_writes(self, index: int, code: int) -> None:
+        """Abort SDO writes to ``index`` with ``code`` (0 = take them again), power cycles too."""
+        if code:
+            self._aborting[int(index)] = int(code)
+        else:
+            self._aborting.pop(int(index), None)
+
     def refuse_state(self, state: int, code: int) -> None:
         """Refuse requests for AL ``state`` with AL status ``code`` (0 = accept again)."""
         if code:
@@ -531,6 +543,7 @@ class Cia402VelocityDrive:
             'error_code': int(self.od.value(0x603F)),
             'mode': int(self.od.value(0x6060)),
             'outputs_received': self.outputs_received,
+            'sdo_writes': self.sdo_writes,
         }
 
 
