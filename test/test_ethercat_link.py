@@ -196,6 +196,12 @@ def test_dc_mode_runs(start_segment, open_segment):
     wait_for(lambda: link.stats().cycles > 200 and link.stats().last_wkc == 6, 3.0,
              'cycles with the full WKC')
     assert link.stats().expected_wkc == 6
+    # A power cycle loses SYNC0 with the rest: the supervisor starts it again at PRE-OP
+    # (the slave ran free after one, or refused SAFE-OP if it needs SYNC0: re-check).
+    sim.power_cycle(1)
+    wait_for(lambda: sim.esc(1)['al_status'] != int(ALState.OP), 2.0, 'slave 2 reset')
+    wait_for(lambda: sim.esc(1)['al_status'] == int(ALState.OP), 5.0, 'slave 2 back in OP')
+    assert sim.esc(1)['sync0_cycle_ns'] == 1_000_000, sim.esc(1)
 
 
 def test_sm_watchdog_is_configured(start_segment, open_segment):

@@ -346,6 +346,7 @@ class EthercatSlave:
         #: writes its set-up again at PRE-OP (PDO mapping, start-up objects); raises
         self.preop_setup: Callable[[], None] | None = None
         self.setup_due = False                # came back through INIT: preop_setup first
+        self.sync0: tuple[int, int] | None = None   # (cycle, shift) ns of its SYNC0, if any
         #: why preop_setup failed last ('' = it did not), and when it may be tried again
         self.setup_error = ''
         self.setup_retry_at = 0.0
@@ -590,7 +591,8 @@ class EthercatSegment:
                 raise EthercatError('DC sync requested but no slave has distributed clocks')
             for slave in self._slaves:
                 if slave.position not in free_running:
-                    slave._soem.dc_sync(True, cycle_ns, int(settings.dc_shift_s * 1e9))
+                    slave.sync0 = (cycle_ns, int(settings.dc_shift_s * 1e9))
+                    slave._soem.dc_sync(True, *slave.sync0)
         with self._mailbox_lock:
             try:
                 master.config_map()                         # requests SAFE-OP
@@ -872,6 +874,12 @@ class EthercatSegment:
                                     'so it stays there: %s', slave.position + 1, exc)
                     slave.setup_error = f'its set-up is not written again at PRE-OP: {exc}'
                     return
+            if slave.setup_due:
+                if slave.sync0 is not None:
+                    # A power cycle lost its SYNC0 too: it ran free, or a drive that
+                    # needs it refused SAFE-OP for good (outside re-check). Started again
+                    # from its own clock (SOEM's reconfig did not restore it either).
+                    soem.dc_sync(True, *slave.sync0)
             slave.setup_due, slave.setup_error = False, ''
             following = ALState.SAFE_OP
         with self._state_lock:
