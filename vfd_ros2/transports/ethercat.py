@@ -1274,21 +1274,21 @@ class EthercatTransport(Transport):
         and the slave then stays in PRE-OP, with its drive offline, until it takes it.
         """
         def write_again() -> None:
-            if not setup.fixed_mapping:
-                for index, entries in setup.pdos.mappings.items():
-                    slave.sdo_write(index, 0, b'\x00')
-                    for sub, entry in enumerate(entries, 1):
-                        slave.sdo_write(index, sub, struct.pack('<I', entry))
-                    slave.sdo_write(index, 0, bytes([len(entries)]))
-                for assign, indices in ((0x1C12, setup.pdos.rx), (0x1C13, setup.pdos.tx)):
-                    slave.sdo_write(assign, 0, b'\x00')
-                    for sub, index in enumerate(indices, 1):
-                        slave.sdo_write(assign, sub, struct.pack('<H', index))
-                    slave.sdo_write(assign, 0, bytes([len(indices)]))
-            for index, subindex, data in setup.startup:
-                slave.sdo_write(index, subindex, data)
+            EthercatTransport._write_setup(slave._segment, slave.position, setup)
             log.info('EtherCAT slave %d: PDO set-up written again', slave.position + 1)
         return write_again
+
+    @staticmethod
+    def _write_setup(segment: EthercatSegment, position: int, setup: SlaveSetup) -> None:
+        """Write a slave's PDO assignment (its mapping too, unless fixed) and start-up objects.
+
+        At PRE-OP, at open and after a power cycle alike. ``position`` is 0-based.
+        """
+        segment.configure_pdos(position, setup.pdos if not setup.fixed_mapping else
+                               PdoConfiguration(setup.pdos.rx, setup.pdos.tx))
+        slave = segment.slave(position)
+        for index, subindex, data in setup.startup:
+            slave.sdo_write(index, subindex, data)
 
     def _locate(self, segment: EthercatSegment) -> None:
         """Find each attached slave: by position, or by its station alias (SII word 4)."""
@@ -1331,14 +1331,7 @@ class EthercatTransport(Transport):
             self._errors[unit] = problem
             return
         try:
-            if not setup.fixed_mapping:
-                segment.configure_pdos(position - 1, setup.pdos)
-            else:
-                segment.configure_pdos(position - 1, PdoConfiguration(setup.pdos.rx,
-                                                                      setup.pdos.tx))
-            slave = segment.slave(position - 1)
-            for index, subindex, data in setup.startup:
-                slave.sdo_write(index, subindex, data)
+            self._write_setup(segment, position - 1, setup)
         except (TransportError, ProtocolException) as exc:
             self._errors[unit] = f'slave {position} set-up at PRE-OP failed: {exc}'
 
