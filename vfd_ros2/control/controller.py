@@ -58,13 +58,16 @@ ADDRESSING_HEADROOM = 1.25
 #: commander slower than the timeout (``ros2 topic pub -r 1`` against 0.5 s: the
 #: wheel stops between commands)
 COMMAND_GAP_FACTOR = 4.0
-COMMAND_GAP_SPAN = 2.5
+COMMAND_GAP_SPAN = 3.0
 #: s within which a second such gap makes a WARN in /diagnostics (for as long again) and
 #: a log line (at most one per this): one pause alone is only counted
 COMMAND_GAP_MEMORY = 10.0
 #: motor rpm still taken as standstill (a speed read in whole rpm shows a motor at rest
-#: as 1 rpm now and then): at the output shaft, if more than at_speed_tolerance
-STANDSTILL_MOTOR_RPM = 2.0
+#: as 1-3 rpm, steadily on some): at the output shaft, if more than at_speed_tolerance
+STANDSTILL_MOTOR_RPM = 5.0
+#: stop_timeout windows more given to a drive held idle that is ramping down towards
+#: zero within them (see _check_not_stopping)
+RAMP_WINDOWS = 2
 
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
@@ -206,7 +209,7 @@ class DriveController:
         self._lost_run = ''             # why a drive told to run does not, once it is clear
         self._running_idle_since: float | None = None   # running while held idle, since
         self._running_idle_speed = math.nan  # |measured speed| then (a ramp brings it down)
-        self._slow_ramp_told = False
+        self._ramp_windows = 0          # stop_timeout windows given to a ramp so far
         self._running_idle_counted = False  # that episode is in unexpected_starts already
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._unexpected_starts = 0
@@ -330,8 +333,9 @@ class DriveController:
             return ''
         self._command_gap = (f'velocity commands reached the node {gap:.2g} s apart, longer '
                              f'than command_timeout {limit:g} s: the watchdog stopped the '
-                             f'drive between them ({self._command_gaps} so far); publish '
-                             'them more often or raise command_timeout')
+                             f'drive between them ({self._command_gaps} so far); unless '
+                             'the commander paused, publish them more often or raise '
+                             'command_timeout')
         self._command_gap_at = now
         if now - self._command_gap_logged_at < COMMAND_GAP_MEMORY:
             return ''
@@ -790,7 +794,6 @@ class DriveController:
         self._last_running = False
         self._running_idle_since, self._running_idle_counted = None, False
         self._not_stopping = ''         # (nothing was written while it was offline)
-        self._slow_ramp_told = False
         self._polled_at, self._near_trips, self._raise_refused = None, 0, 0.0
         self._check_comm_fault = True
         # Online from here, but nothing is known of the drive's state until a status
@@ -939,32 +942,46 @@ class DriveController:
         while the status said "watchdog" or "stopped" with OK diagnostics. Counted
         once in unexpected_starts (unless it started so), logged, and shown in
         ~/status and /diagnostics (ERROR) until it stops.
+
+        A drive still ramping down (a CiA 402 drive stays in operation enabled through
+        its ramp) was counted and shown as one (outside audit): one whose speed, at the
+        rate it fell over the last stop_timeout, reaches zero within RAMP_WINDOWS more
+        is given those (a warning); past them, or falling slower, it is the ERROR, and
+        not counted as a start while it falls (a ramp cannot be told from a runaway
+        drifting down: the re-check's drifted for 30 s unreported).
         """
         speed = abs(self._reading.measured_velocity)     # (NaN: not measured)
         if self._running_idle_since is None:
             self._running_idle_since, self._running_idle_speed = now, speed
+            self._ramp_windows = 0
         if self._not_stopping or now - self._running_idle_since <= self.config.stop_timeout:
             return
-        if speed < self._running_idle_speed - self.services.standstill:
-            # Still ramping down, only slower than stop_timeout allows (a CiA 402 drive
-            # stays in operation enabled through its ramp): not a run from elsewhere. It
-            # was counted and shown as one (outside audit); a next window without
-            # progress is.
-            if not self._slow_ramp_told:
+        fall = self._running_idle_speed - speed
+        if fall > 0 and speed <= RAMP_WINDOWS * fall and self._ramp_windows < RAMP_WINDOWS:
+            if not self._ramp_windows:
                 log.warning('%s: held idle, the drive is still ramping down (%.3g rad/s) '
                             'after stop_timeout %g s: its deceleration is slower than '
                             'stop_timeout allows', self.drive.hardware_id, speed,
                             self.config.stop_timeout)
-                self._slow_ramp_told = True
+            self._ramp_windows += 1
             self._running_idle_since, self._running_idle_speed = now, speed
             return
-        self._not_stopping = (f'held idle, the drive has reported running for more than '
-                              f'stop_timeout {self.config.stop_timeout:g} s although the idle '
-                              'command is written every cycle: stop it locally, and look for '
-                              'another run source (keypad, terminals) or a stuck run input')
-        if not self._running_idle_counted:
-            self._unexpected_starts += 1
-            self._running_idle_counted = True
+        elapsed = now - self._running_idle_since + self._ramp_windows * self.config.stop_timeout
+        if fall > 0:            # falling, too slowly (or too long) for a ramp
+            self._not_stopping = (
+                f'held idle, the drive has reported running for {elapsed:.3g} s, more than '
+                f'stop_timeout {self.config.stop_timeout:g} s, its speed falling slowly '
+                f'({speed:.3g} rad/s now): a deceleration far slower than stop_timeout '
+                'allows, or a run source elsewhere (keypad, terminals): stop it locally')
+        else:
+            self._not_stopping = (
+                f'held idle, the drive has reported running for more than stop_timeout '
+                f'{self.config.stop_timeout:g} s although the idle command is written every '
+                'cycle: stop it locally, and look for another run source (keypad, '
+                'terminals) or a stuck run input')
+            if not self._running_idle_counted:
+                self._unexpected_starts += 1
+                self._running_idle_counted = True
         log.error('%s: %s', self.drive.hardware_id, self._not_stopping)
 
     def _check_unexpected_motion(self) -> None:
@@ -987,7 +1004,7 @@ class DriveController:
             self._check_not_stopping(now)
         else:
             self._running_idle_since, self._running_idle_counted = None, False
-            self._not_stopping, self._slow_ramp_told = '', False
+            self._not_stopping = ''
         self._last_running = running
         # The other way round: told to run, the drive does not (it reset, was stopped
         # at its keypad, an inhibit): report it rather than show "running" with OK

@@ -509,8 +509,9 @@ class DiffDriveNode(Node):
         fresh = self.last_command is not None and \
             0.0 <= (now - self.last_command).nanoseconds * 1e-9 <= timeout_s
         if not fresh and not self.timed_out and self.last_command is not None:
-            self.get_logger().warning(
-                f'no valid cmd_vel for {timeout_s:g} s: stopping the wheels')
+            self.get_logger().warning(   # (a jittery sender: 25 lines in 20 s, re-check)
+                f'no valid cmd_vel for {timeout_s:g} s: stopping the wheels (said at most '
+                'every 10 s)', throttle_duration_sec=10.0)
         self.timed_out = not fresh
         # One wheel that does not follow (offline, faulted, stopped, ...) would turn the
         # robot about it at the commanded speed: both wheels are brought to zero
