@@ -347,6 +347,26 @@ def test_tpdos_that_stop_while_the_heartbeat_goes_on_are_stale_not_status(make_c
     assert status.reconnects >= 1
 
 
+def test_a_drive_the_link_loses_that_still_hears_gets_a_stop_at_once(make_can_harness):
+    """Its TPDOs stop while it still takes RPDOs: offline, and it must not run on.
+
+    Without drive-side protection (drive_comm_timeout 0) it ran on its last command
+    until the reconnect's stop: 3-8 s behind a neighbour's slow connect (outside
+    audit). The stop now goes out as the link closes.
+    """
+    h = make_can_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.0,
+                                          'reconnect_period': 5.0})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.stream(2.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'at 2 rad/s')
+    sim.tpdos_off = True                     # status gone, commands still heard
+    wheel.wait_status(lambda s: not s.online, 3.0, 'offline: TPDOs stale')
+    wait_for(lambda: sim.state is not State.OPERATION_ENABLED or sim.target_raw == 0, 1.0,
+             'the stop heard as the link closed (the reconnect is 5 s away)')
+    wheel.stop_stream()
+
+
 def test_tpdos_of_the_wrong_length_are_named_not_taken_for_silence(make_can_harness, caplog):
     """TPDO1 keeps coming, three bytes short of its mapping: the reason says so."""
     caplog.set_level('WARNING')

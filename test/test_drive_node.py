@@ -317,7 +317,10 @@ def test_parameter_get_and_set(make_harness):
     assert reply.success, reply.message
     assert reply.value == 2.5 and reply.raw_value == 25
     assert h.sim.value('B04.03') == 2.5
-    assert h.sim.value('C02.07') == 1          # RAM-only write selected first
+    # RAM-only: C02.07 = 1 for this write, then set back (later writes, the driver's own
+    # at each connect too, must not go where the last service call chose)
+    assert 'C02.07 set to 1 for it and back to 0' in reply.message, reply.message
+    assert h.sim.value('C02.07') == 0
 
     reply = h.call(SetDriveParameter, 'set_drive_parameter',
                    SetDriveParameter.Request(name='B04.03', value=3.0, persistent=True))
@@ -389,6 +392,17 @@ def test_enable_disable_stop_are_verified(make_harness):
     assert reply.success, reply.message
     assert h.sim.last_command_value == 0       # the AM's "clear all flags" value
     h.wait_status(lambda s: s.state == 'disabled' and not s.running, 2.0, 'disabled')
+
+
+def test_a_refused_parameter_write_leaves_the_ram_eeprom_switch_as_it_was(make_harness):
+    """The AM's RAM write sets C02.07 first: a write the drive refuses flipped it (audit)."""
+    h = make_harness(refused=('B04.02',))
+    for persistent in (False, True, False):
+        reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                       SetDriveParameter.Request(name='B04.02', value=2.0,
+                                                 persistent=persistent))
+        assert not reply.success and 'exception 2' in reply.message, reply.message
+        assert h.sim.value('C02.07') == 0, persistent
 
 
 def test_comm_loss_is_reported_and_recovered(make_harness, ros_context):

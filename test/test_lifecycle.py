@@ -132,6 +132,40 @@ def test_drive_every_transition_at_the_simulated_drive(managed):
     wait_for(lambda: h.sim.speed_rpm == 0.0, 3.0, 'motor stopped by shutdown')
 
 
+def test_an_operators_stop_asked_after_an_enable_holds_through_a_re_activate(managed):
+    """~/stop, ~/enable, ~/stop asked 50 ms apart: the last stop holds.
+
+    The stop latches as it is asked, but the enable queued before it ran after and
+    undid it: the stop's action then held it as a lifecycle hold only, and a
+    deactivate-activate with auto_enable ran the motor again (outside audit).
+    """
+    h = managed(auto_enable=True)
+    node = f'{h.namespace}/drive'
+    h.stream(2.0)
+    assert change(h.tester, node, Transition.TRANSITION_CONFIGURE)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)
+    wait_for(lambda: at_speed(h.sim, 2.0), 6.0, 'motor at 2 rad/s')
+    clients = {name: h.tester.create_client(Trigger, f'{node}/{name}')
+               for name in ('stop', 'enable')}
+    assert all(c.wait_for_service(timeout_sec=5.0) for c in clients.values())
+    futures = []
+    for name in ('stop', 'enable', 'stop'):
+        futures.append((name, clients[name].call_async(Trigger.Request())))
+        time.sleep(0.05)
+    wait_for(lambda: all(f.done() for _, f in futures), 15.0, 'all three answered')
+    answers = [(name, f.result().success, f.result().message) for name, f in futures]
+    assert answers[1][1] is False and 'asked after this ~/enable' in answers[1][2], answers
+    assert answers[2][1], answers
+    h.wait_status(lambda s: s.stop_reason.startswith('stopped by ~/stop'), 2.0,
+                  "the operator's stop, said so")
+    assert change(h.tester, node, Transition.TRANSITION_DEACTIVATE)
+    assert change(h.tester, node, Transition.TRANSITION_ACTIVATE)   # auto_enable
+    h.wait_cycles(30)
+    assert h.sim.speed_rpm == 0.0 and not h.sim.output_active, 'the stop held'
+    for client in clients.values():
+        h.tester.destroy_client(client)
+
+
 def test_without_auto_enable_activate_only_allows_motion(managed):
     h = managed(auto_enable=False)
     node = f'{h.namespace}/drive'

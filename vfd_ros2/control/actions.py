@@ -169,16 +169,29 @@ class ServiceActions:
         self.reassert_idle = False
         #: set by ~/enable: the run command is written again (a drive that lost it)
         self.reassert_run = False
+        #: operators' stops and disables latched so far (an enable asked before one
+        #: of them must not undo it when it runs after it)
+        self.latches = 0
         self._steps: dict[str, Callable[..., Action]] = {
             'enable': self.enable, 'disable': self.disable, 'stop': self.stop,
             'reset_fault': self.reset_fault, 'get_parameter': self.get_parameter,
             'set_parameter': self.set_parameter}
 
-    def factory(self, name: str, *args: object) -> Callable[[], Action]:
-        """Return the action ``name`` with its arguments; ParameterError if unknown."""
+    def factory(self, name: str, *args: object, operator: bool = True) -> Callable[[], Action]:
+        """Return the action ``name`` with its arguments; ParameterError if unknown.
+
+        ``operator``: a stop or disable an operator asked (latched as it is asked,
+        and held by ``asked_stop``), not a managed node's own hold. An enable knows
+        the latches so far: a stop or disable asked after it wins.
+        """
         step = self._steps.get(name)
         if step is None:
             raise ParameterError(f'unknown action {quote(name)}')
+        if name == 'enable':
+            latches = self.latches
+            return lambda: self.enable(latches)
+        if name in ('stop', 'disable'):
+            return lambda: step(operator)
         return lambda: step(*args)
 
     def latch(self, name: str) -> str:
@@ -191,10 +204,12 @@ class ServiceActions:
         intent = self.intent
         if name == 'stop':
             intent.stopped = intent.asked_stop = True
+            self.latches += 1
             return 'the stop is latched'
         if name == 'disable':
             intent.enabled, intent.asked_stop = False, True
             intent.idle_action = self._disable_action()     # the coast, as when online
+            self.latches += 1
             return 'the disable is latched'
         return ''
 
@@ -214,7 +229,14 @@ class ServiceActions:
             if self._clock() > deadline:
                 return False
 
-    def enable(self) -> Action:
+    def enable(self, latches: int | None = None) -> Action:
+        """Enable; ``latches``: the operators' stops and disables when it was asked."""
+        if latches is not None and latches != self.latches:
+            # A ~/stop or ~/disable asked after this enable holds from its asking: run
+            # now, the enable undid it (and a managed activate with auto_enable then
+            # ran the motor again: outside audit).
+            return ActionResult(False, 'not enabled: a ~/stop or ~/disable asked after '
+                                'this ~/enable holds the drive')
         reading = self._reading()
         if reading.fault.active:
             fault = reading.fault
@@ -280,12 +302,14 @@ class ServiceActions:
                                 f'turns at {turning:.3g} rad/s (coasting)')
         return ActionResult(True, f'{what}: the drive reports not running')
 
-    def disable(self) -> Action:
+    def disable(self, operator: bool = True) -> Action:
         self.intent.enabled = False
+        self.intent.asked_stop |= operator     # (an earlier enable may have run since)
         return (yield from self._stopping(self._disable_action(), 'disabled', False))
 
-    def stop(self) -> Action:
+    def stop(self, operator: bool = True) -> Action:
         self.intent.stopped = True
+        self.intent.asked_stop |= operator
         return (yield from self._stopping('stop', 'stopped (call ~/enable to resume)', True))
 
     def reset_fault(self) -> Action:

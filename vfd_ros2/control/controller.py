@@ -468,7 +468,7 @@ class DriveController:
         asked (see ``ServiceActions.latch``); a managed node's own hold does not.
         """
         try:
-            factory = self.services.factory(name, *args)
+            factory = self.services.factory(name, *args, operator=latch)
         except ParameterError as exc:
             future: Future = Future()
             future.set_result(ActionResult(False, str(exc)))
@@ -648,10 +648,7 @@ class DriveController:
         if not self.link.online:
             return False
         try:
-            # Whatever the driver believes the drive is doing: write the stop.
-            self.drive.forget_state()
-            self.drive.apply(0.0, run=False, idle_action='stop')
-            self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
+            self._send_stop()
         except VfdError as exc:
             if quietly:
                 pass
@@ -662,6 +659,12 @@ class DriveController:
                 log.warning('could not stop %s at shutdown: %s', self.drive.hardware_id, exc)
             return False
         return True
+
+    def _send_stop(self) -> None:
+        """Write the stop, whatever the driver believes the drive is doing (VfdError)."""
+        self.drive.forget_state()
+        self.drive.apply(0.0, run=False, idle_action='stop')
+        self.drive.transport.end_command_burst()     # a SYNC-driven drive needs it
 
     def finish(self, stop: bool = True) -> None:
         """End of the loop: command the drive to stop (unless written already), close the link."""
@@ -905,6 +908,16 @@ class DriveController:
         self._polled_at = None      # a gap while the link fails is not the cycle's
         if self.link.cycle_failed(exc):
             self._reading = Reading()
+            # A drive the link lost may still hear it (its heartbeat or TPDOs gone, a
+            # broken receive wire): the stop goes out once, hurried, before the link
+            # closes. It ran on its last command until the reconnect's stop, seconds
+            # later behind a neighbour's slow connect (outside audit: 3-8 s).
+            try:
+                with self.drive.transport.hurried():
+                    self._send_stop()
+            except VfdError as stop_failed:
+                log.debug('%s: no stop before closing the link: %s', self.drive.hardware_id,
+                          stop_failed)
             self.drive.close()
 
     def _check_fault(self) -> None:

@@ -6,6 +6,7 @@ a ``VfdError``; the caller (``vfd_ros2.control``) owns threads, timing and polic
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from functools import partial
@@ -17,6 +18,7 @@ from ..errors import (
     PassingRefusal,
     ProfileError,
     ProtocolException,
+    VfdError,
 )
 from ..profiles import (
     DirectionMode,
@@ -603,18 +605,37 @@ class ModbusDrive(DriveOnLink):
             address = parameter.address + persistence.offset
         elif persistence.kind is PersistenceKind.ADDRESS_FLAG and not persistent:
             address = parameter.address | persistence.flag
-        elif persistence.kind is PersistenceKind.SWITCH_PARAMETER and \
-                parameter.code != persistence.parameter:
+        restore: tuple[Parameter, int] | None = None
+        if persistence.kind is PersistenceKind.SWITCH_PARAMETER and \
+                persistence.covers(parameter.address) and parameter.code != persistence.parameter:
+            # Set for this write and set back after it, whatever its outcome: a refused
+            # write changed the drive (the switch), and every later Modbus write, the
+            # driver's own at each connect too, went where the last service call chose
+            # (outside audit).
             switch = self.profile.parameter(persistence.parameter)
             wanted = persistence.persistent_value if persistent else persistence.volatile_value
-            if self.read_value(switch).raw != wanted:
+            before = self.read_value(switch).raw
+            if before != wanted:
                 self.write_raw(switch, wanted)
-                note = f'{switch.code} set to {wanted} first'
-        self.write_raw(parameter, raw, address)
-        readback = self.read_value(parameter)
-        if readback.raw != raw:
-            raise ParameterError(
-                f'{parameter.code}: wrote {raw} but the drive holds {readback.raw}')
+                restore = (switch, before)
+                note = f'{switch.code} set to {wanted} for it and back to {before}'
+        try:
+            self.write_raw(parameter, raw, address)
+            readback = self.read_value(parameter)
+            if readback.raw != raw:
+                raise ParameterError(
+                    f'{parameter.code}: wrote {raw} but the drive holds {readback.raw}')
+        except VfdError:
+            if restore is not None:
+                with contextlib.suppress(VfdError):     # (the write's own error is the news)
+                    self.write_raw(*restore)
+            raise
+        if restore is not None:
+            try:
+                self.write_raw(*restore)
+            except VfdError as exc:
+                note = (f'{restore[0].code} set to {wanted} for it, not back to '
+                        f'{restore[1]}: {exc}')
         where = 'EEPROM' if persistent else 'RAM'
         if persistence.kind is not PersistenceKind.NONE and persistence.covers(parameter.address):
             note = f'{where} write' + (f'; {note}' if note else '')
