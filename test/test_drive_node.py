@@ -640,3 +640,19 @@ def test_commands_slower_than_command_timeout_are_named_in_diagnostics(make_harn
     h.wait_cycles(10)
     time.sleep(0.5)                                  # (a diagnostics period)
     assert counted() == 3
+
+
+def test_a_two_register_value_without_function_16_is_refused_before_any_write(make_harness):
+    """A value the link can only write in halves is refused, not half written.
+
+    The Kinco takes 03/06 only: A0.30 (int32) went out as two writes, and a half
+    refused (or stopped between) leaves a half-written value behind (outside audit).
+    """
+    h = make_harness(profile='kinco_ec')
+    reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                   SetDriveParameter.Request(name='A0.30', value=1000.0, persistent=False))
+    assert not reply.success and 'spans 2 registers' in reply.message, reply.message
+    got = h.call(GetDriveParameter, 'get_drive_parameter', GetDriveParameter.Request(name='A0.30'))
+    assert got.success and not got.writable, got
+    assert not [f for f in h.frames_after(0.0) if len(f) > 1 and f[1] == 0x06 and
+                int.from_bytes(f[2:4], 'big') in (0x001E, 0x001F)], 'nothing written'

@@ -376,7 +376,8 @@ class DriveController:
                 return (f'it is part of the set-up for bus control ({item.value:g}: '
                         f'{item.why}), left to you (apply_commissioning false): set it with '
                         'vfd_params or at the keypad')
-        return self._driver_settings.get(parameter.code, '')
+        link = getattr(self.drive, 'write_refusal', None)     # (a drive class may not say)
+        return self._driver_settings.get(parameter.code, '') or (link(parameter) if link else '')
 
     def check_parameter_write(self, key: str, value: float) -> None:
         """Refuse a parameter write that must not reach the loop (ParameterError says why).

@@ -102,11 +102,11 @@ class Parameter:
             raise ParameterError(f'{self.code}: value {value} is not a finite number')
         if self.minimum is not None and value < self.minimum - abs(self.scale) * 1e-6:
             raise ParameterError(
-                f'{self.code}: {value:g}{self.unit} is below the minimum {self.minimum:g}'
+                f'{self.code}: {value!r}{self.unit} is below the minimum {self.minimum:g}'
                 f'{self.unit}')
         if self.maximum is not None and value > self.maximum + abs(self.scale) * 1e-6:
             raise ParameterError(
-                f'{self.code}: {value:g}{self.unit} is above the maximum {self.maximum:g}'
+                f'{self.code}: {value!r}{self.unit} is above the maximum {self.maximum:g}'
                 f'{self.unit}')
         raw_float = value / self.scale
         low, high = self.type.bounds
