@@ -80,3 +80,35 @@ def test_no_request_waits_for_a_loop_that_does_not_run():
     queue.open()
     run_until_idle(queue)
     assert ran == []
+
+
+def test_a_stop_asked_while_an_enable_waits_ends_the_wait_and_holds():
+    """A ~/stop asked while an enable waits for the drive ends that wait at once.
+
+    The enable waited out action_timeout before the stop behind it was answered, and
+    then marked the node disabled over the operator's stop (outside re-check).
+    """
+    from vfd_ros2.control.actions import ServiceActions
+    from vfd_ros2.control.permit import Intent
+    from vfd_ros2.drives import Reading
+
+    class Idle:                      # a drive that is ready and never reports running
+        profile = None
+    reading = Reading()
+    reading.flags.update(ready=True, running=False)
+    now = [0.0]
+    intent = Intent(enabled=False)
+    services = ServiceActions(Idle(), intent, lambda: reading, lambda: True,
+                              lambda key, value: None, action_timeout=2.0, stop_timeout=10.0,
+                              clock=lambda: now[0], standstill=0.1)
+    enable = services.factory('enable')()
+    next(enable)                     # asked, waiting for the drive to run
+    now[0] = 0.1
+    services.latch('stop')           # the operator's stop, asked meanwhile
+    try:
+        next(enable)
+        raise AssertionError('the enable waited on')
+    except StopIteration as done:
+        result = done.value
+    assert not result.success and 'asked after this ~/enable' in result.message, result
+    assert intent.stopped and intent.asked_stop and intent.enabled    # "stopped by ~/stop"

@@ -70,7 +70,12 @@ def test_invert_direction_and_clamp(make_harness):
     assert h.sim.speed_rpm < 0                                     # inverted on the motor
 
 
-def test_startup_never_moves_and_zeroes_setpoint_first(make_harness):
+def test_startup_never_moves_and_writes_the_stop_and_a_zero_setpoint_first(make_harness):
+    """The stop command first, then the zero setpoint, before anything else.
+
+    The stop first: a drive whose replies are lost still hears it, where a timed-out
+    zero setpoint ahead of it left it unsent at every connect (outside re-check).
+    """
     h = make_harness(node_parameters={'auto_enable': True})
     first_run = None
     frames = [frame for _, frame in list(h.line.received)]
@@ -79,7 +84,7 @@ def test_startup_never_moves_and_zeroes_setpoint_first(make_harness):
             first_run = index
             break
     assert first_run is None                                       # no command: no run
-    assert frames.index(write_frame(0xE721, 0)) < frames.index(write_frame(0xE720, 4))
+    assert frames[:2] == [write_frame(0xE720, 4), write_frame(0xE721, 0)], frames[:2]
     h.stream(1.0)
     wait_for(lambda: write_frame(0xE720, 1) in [f for _, f in list(h.line.received)], 5.0, 'run')
     frames = [frame for _, frame in list(h.line.received)]
@@ -435,6 +440,22 @@ def test_comm_loss_is_reported_and_recovered(make_harness, ros_context):
              3.0, 'the reset reported in diagnostics')
     h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
                   'moving again with fresh commands')
+
+
+def test_a_drive_whose_replies_are_lost_still_hears_its_stop(make_harness):
+    """A broken transmit wire: the drive hears and obeys, its replies never arrive.
+
+    The idle writes began with the zero setpoint, which timed out, so the stop
+    command never went out, at the link's loss nor at any reconnect; those writes fed
+    the drive's own comm-loss timer, and it held its run command (outside re-check).
+    """
+    h = make_harness(node_parameters={'auto_enable': True})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    h.sim.mute = True
+    h.wait_status(lambda s: not s.online, 3.0, 'offline')
+    wait_for(lambda: not h.sim.run_requested, 3.0, 'the stop command heard')
+    h.stop_stream()
 
 
 def test_a_drive_never_connected_reports_no_protection_and_a_comm_loss(make_harness):

@@ -231,12 +231,16 @@ class ServiceActions:
 
     def enable(self, latches: int | None = None) -> Action:
         """Enable; ``latches``: the operators' stops and disables when it was asked."""
-        if latches is not None and latches != self.latches:
+        def superseded() -> bool:
             # A ~/stop or ~/disable asked after this enable holds from its asking: run
-            # now, the enable undid it (and a managed activate with auto_enable then
-            # ran the motor again: outside audit).
-            return ActionResult(False, 'not enabled: a ~/stop or ~/disable asked after '
-                                'this ~/enable holds the drive')
+            # after it, the enable undid it (and a managed activate with auto_enable
+            # then ran the motor again: outside audit); asked while it waits, it ends
+            # the wait (the stop's answer waited out action_timeout: re-check).
+            return latches is not None and latches != self.latches
+        refused = ActionResult(False, 'not enabled: a ~/stop or ~/disable asked after this '
+                               '~/enable holds the drive')
+        if superseded():
+            return refused
         reading = self._reading()
         if reading.fault.active:
             fault = reading.fault
@@ -255,15 +259,20 @@ class ServiceActions:
         # A drive that lost its run command (it does not report running) gets it again;
         # one that runs is left alone (the run edge would pass through a stop).
         self.reassert_run = not self._flag('running', False)
-        ok = yield from self._wait_for(lambda: self._flag('ready', True) or
+        ok = yield from self._wait_for(lambda: superseded() or self._flag('ready', True) or
                                        self._flag('running', False), self.action_timeout)
+        if superseded():
+            return refused
         if not ok:
             intent.enabled = False
             return ActionResult(False, 'drive did not report ready: not enabled')
         if not self._commands_fresh():
             return ActionResult(True, 'enabled: the drive is ready and runs as soon as '
                                 'velocity commands arrive')
-        ok = yield from self._wait_for(lambda: self._flag('running', True), self.action_timeout)
+        ok = yield from self._wait_for(lambda: superseded() or self._flag('running', True),
+                                       self.action_timeout)
+        if superseded():
+            return refused
         if not ok:
             # A refused enable leaves the node not enabled: the drive must not start by
             # itself later, when whatever held it (a safe torque off) is released.

@@ -127,6 +127,9 @@ class ModbusDrive(DriveOnLink):
         self.asserted_command: str | None = None
         self.last_setpoint_raw = 0
         self._configured: list[tuple[Parameter, int]] = []     # what configure() set
+        #: a RAM/EEPROM switch a parameter write could not set back (the link failed
+        #: between): set back at the next connect
+        self._switch_pending: tuple[Parameter, int] | None = None
 
     @property
     def link_parameters(self) -> tuple[str, ...]:
@@ -255,6 +258,9 @@ class ModbusDrive(DriveOnLink):
         the drive stays online. A failed link still raises.
         """
         wanted: list[tuple[str, float]] = []
+        pending = self._switch_pending
+        if pending is not None:
+            wanted.append((pending[0].code, pending[0].from_raw(pending[1])))
         if self.profile.comm_timeout is not None:
             wanted.append((self.profile.comm_timeout.parameter, protection.timeout))
         if apply_commissioning:
@@ -267,6 +273,9 @@ class ModbusDrive(DriveOnLink):
                 raw = parameter.to_raw(value)
                 if self.read_value(parameter).raw != raw:
                     self.write_raw(parameter, raw)
+                if pending is not None and parameter is pending[0]:
+                    self._switch_pending = None
+                    continue                # (the switch is no setting the node keeps)
                 self._configured.append((parameter, raw))
             except (ParameterError, ProtocolException) as exc:
                 problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
@@ -436,7 +445,7 @@ class ModbusDrive(DriveOnLink):
 
     def apply(self, velocity: float, run: bool, idle_action: str = 'stop',
               reassert: bool = False) -> None:
-        """One control cycle: write the setpoint, then (re)assert run or idle.
+        """One control cycle: write the setpoint, then (re)assert run; idle: see _apply_idle.
 
         A run command is written only on a change (with the rising edge the
         drive needs) or when ``reassert`` says the drive does not do what was
@@ -444,23 +453,39 @@ class ModbusDrive(DriveOnLink):
         drive's own comm-loss timer.
         """
         raw, run_action = self._native_setpoint(velocity if run else 0.0)
-        wanted = run_action if run else idle_action
-        try:
-            self.write_raw(self._setpoint, raw)
-        except (ProtocolException, PassingRefusal):
-            if run:
-                raise           # never (re)start a drive that refuses its setpoint
-            # Idle: the stop must go out even when the drive refuses the zero setpoint
-            # (the watchdog's, the shutdown's); the refusal is reported after it.
-            self.send_command(wanted)
-            raise
+        if not run:
+            self._apply_idle(raw, idle_action, reassert)
+            return
+        self.write_raw(self._setpoint, raw)   # (a refused setpoint never (re)starts it)
         self.last_setpoint_raw = raw
+        wanted = run_action
         if wanted == self.asserted_command and not reassert:
             return
-        if run and (reassert or self.asserted_command not in ('run', 'run_reverse')) and \
+        if (reassert or self.asserted_command not in ('run', 'run_reverse')) and \
                 self.profile.control.run_edge_from is not None:
             self.write_raw(self._command, self.profile.control.run_edge_from)
         self.send_command(wanted)
+
+    def _apply_idle(self, raw: int, idle_action: str, reassert: bool) -> None:
+        """Idle: the stop command first where it is due, then the zero setpoint.
+
+        The stop first: a drive whose replies are lost still hears it, where a
+        timed-out zero setpoint ahead of it left it unsent, at every reconnect too,
+        and the drive held its run command at 0 Hz, its comm-loss timer fed by those
+        writes (outside re-check). Each is written even when the drive refuses the
+        other; the refusal is raised after both. The setpoint goes out every cycle
+        (it feeds the drive's own comm-loss timer).
+        """
+        if idle_action != self.asserted_command or reassert:
+            try:
+                self.send_command(idle_action)
+            except (ProtocolException, PassingRefusal):
+                with contextlib.suppress(ProtocolException, PassingRefusal):
+                    self.write_raw(self._setpoint, raw)
+                    self.last_setpoint_raw = raw
+                raise
+        self.write_raw(self._setpoint, raw)
+        self.last_setpoint_raw = raw
 
     # --- status ---------------------------------------------------------------
 
@@ -643,15 +668,18 @@ class ModbusDrive(DriveOnLink):
                     f'{parameter.code}: wrote {raw} but the drive holds {readback.raw}')
         except VfdError:
             if restore is not None:
-                with contextlib.suppress(VfdError):     # (the write's own error is the news)
+                try:
                     self.write_raw(*restore)
+                except VfdError:       # (the write's own error is the news)
+                    self._switch_pending = restore
             raise
         if restore is not None:
             try:
                 self.write_raw(*restore)
             except VfdError as exc:
+                self._switch_pending = restore
                 note = (f'{restore[0].code} set to {wanted} for it, not back to '
-                        f'{restore[1]}: {exc}')
+                        f'{restore[1]} (at the next connect): {exc}')
         where = 'EEPROM' if persistent else 'RAM'
         if persistence.kind is not PersistenceKind.NONE and persistence.covers(parameter.address):
             note = f'{where} write' + (f'; {note}' if note else '')

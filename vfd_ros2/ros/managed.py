@@ -182,7 +182,13 @@ class DriveTransitions:
         done = results({name: c.submit('enable') for name, c in enabling.items()},
                        max((c.config.action_timeout for c in enabling.values()), default=0)
                        * 2 + 1.0, self._keep_waiting)
-        problem = failures(done)
+        # An operator's ~/stop or ~/disable asked meanwhile holds, as one asked earlier
+        held = {name for name, result in done.items()
+                if not result.success and enabling[name].intent.asked_stop}
+        for name in held:
+            self._logger.warning(f'activate: {name} not enabled: a ~/stop or ~/disable asked '
+                                 'meanwhile holds until ~/enable')
+        problem = failures({name: r for name, r in done.items() if name not in held})
         if problem:
             self._hold()
             if not self._keep_waiting():        # (as in configure)

@@ -52,7 +52,7 @@ def answer(drives: Mapping[int, SimulatedDrive], request: ModbusPDU) -> ModbusPD
             continue
         drive.note_request()
         reply = execute(drive, request)
-    if unit == 0 or reply is None:   # broadcasts are never answered
+    if unit == 0 or reply is None or targets[0].mute:   # broadcasts are never answered
         return None
     reply.dev_id = unit
     reply.transaction_id = request.transaction_id

@@ -78,6 +78,7 @@ class SimulatedDrive:
         self.fault_cause_present = False
         self.warning_code = 0
         self.silent = False
+        self.mute = False       # hears and obeys, its replies never arrive (a broken TX wire)
         # Registers this unit refuses (answered "illegal address"), as a stricter or
         # older firmware of the family would: e.g. a monitor value it does not have.
         self.refused: set[int] = set()
