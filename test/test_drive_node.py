@@ -410,6 +410,27 @@ def test_a_refused_parameter_write_leaves_the_ram_eeprom_switch_as_it_was(make_h
         assert h.sim.value('C02.07') == 0, persistent
 
 
+def test_a_switch_a_write_could_not_set_back_is_set_back_at_the_next_connect(make_harness):
+    """The drive went silent between C02.07 and the value: C02.07 stayed 1 (re-check)."""
+    h = make_harness()
+    switch = h.profile.parameter('C02.07').address
+    real_write = h.sim.write
+
+    def silent_after_the_switch(address: int, values: list[int]) -> None:
+        real_write(address, values)
+        if address == switch and values == [1]:
+            h.sim.silent = True                      # the cable pulled right then
+    h.sim.write = silent_after_the_switch
+    reply = h.call(SetDriveParameter, 'set_drive_parameter',
+                   SetDriveParameter.Request(name='B04.02', value=2.0, persistent=False))
+    assert not reply.success and h.sim.value('C02.07') == 1, reply.message
+    h.wait_status(lambda s: not s.online, 3.0, 'offline')
+    h.sim.write = real_write
+    h.sim.silent = False
+    h.wait_status(lambda s: s.online and s.reconnects >= 1, 10.0, 'back online')
+    wait_for(lambda: h.sim.value('C02.07') == 0, 3.0, 'the switch set back at the connect')
+
+
 def test_comm_loss_is_reported_and_recovered(make_harness, ros_context):
     h = make_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
     assert h.sim.value('C02.04') == pytest.approx(0.3)   # the drive's own timeout, at connect
