@@ -559,7 +559,10 @@ def test_am_other_command_value_frame(am):
 
 
 def test_am_apply_start_and_stop_sequence(am):
-    """apply(): setpoint, the rising edge from 0 (F16), run (F15); then 0 % and stop."""
+    """apply(): setpoint, the rising edge from 0 (F16), run (F15); then stop and 0 %.
+
+    Idle, the stop command goes first: a drive whose replies are lost still hears it.
+    """
     link, drive = am
     start = [on_wire(AM[i]) for i in ('F20', 'F16', 'F15')]
     sent, outcome = link.slave.exchange(start, lambda: drive.apply(velocity_for_percent(100.0),
@@ -569,7 +572,7 @@ def test_am_apply_start_and_stop_sequence(am):
     sent, outcome = link.slave.exchange(again, lambda: drive.apply(velocity_for_percent(100.0),
                                                                    run=True))
     assert sent == again and outcome is None
-    stop = [on_wire(AM[i]) for i in ('F22', 'F12')]
+    stop = [on_wire(AM[i]) for i in ('F12', 'F22')]
     sent, outcome = link.slave.exchange(stop, lambda: drive.apply(0.0, run=False))
     assert sent == stop and outcome is None
 
