@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 import uuid
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 import pytest
 import yaml
@@ -105,6 +105,15 @@ def test_drive_node_reaches_op_follows_velocity_and_reports(start_segment, make_
                          for d in wheel.diagnostics for s in d.status), 3.0, 'diagnostics')
 
 
+def all_at(controllers: Iterable[Any], velocity: float) -> bool:
+    """Command ``velocity`` to each drive; return whether all run at it (within 0.05)."""
+    controllers = list(controllers)
+    for controller in controllers:
+        controller.command_velocity(velocity)
+    return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
+               for c in controllers)
+
+
 @contextlib.contextmanager
 def bus_node_on_segment(ros_context, veth_link, tmp_path, profiles: tuple[str, str],
                         *settings: dict[str, Any]) -> Iterator[BusNode]:
@@ -162,13 +171,7 @@ def test_bus_node_serves_two_drives_on_one_segment(ros_context, start_segment, v
         cycle_threads = [t for t in threading.enumerate()
                          if t.name == f'ethercat-{veth_link.master_interface}']
         assert len(cycle_threads) == 1                           # ... one process-data thread
-
-        def both_at(velocity: float) -> bool:
-            for c in controllers.values():
-                c.command_velocity(velocity)
-            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
-                       for c in controllers.values())
-        wait_for(lambda: both_at(1.0), 8.0, 'both at 1 rad/s')
+        wait_for(lambda: all_at(controllers.values(), 1.0), 8.0, 'both at 1 rad/s')
         for c in controllers.values():      # drive_comm_timeout 0.3 s holds on a bus too
             assert c.state.protection.timeout == pytest.approx(0.3), c.state.protection
         assert sim.drive(0)['mode'] == 9                         # HD2 in csv
@@ -383,16 +386,11 @@ def test_a_short_frame_loss_is_ridden_through(ros_context, start_segment, veth_l
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
     with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
         drives = list(bus.bus.controllers.values())
-        def all_at(velocity: float) -> bool:
-            for c in drives:
-                c.command_velocity(velocity)
-            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
-                       for c in drives)
-        wait_for(lambda: all_at(1.0), 10.0, 'both at 1 rad/s')
+        wait_for(lambda: all_at(drives, 1.0), 10.0, 'both at 1 rad/s')
         sim.lose_frames(0.08)
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
-            all_at(1.0)
+            all_at(drives, 1.0)
             assert all(c.state.online for c in drives), [c.state.stop_reason for c in drives]
             time.sleep(0.02)
         assert all(c.state.reconnects == 0 and c.state.running for c in drives)
@@ -404,11 +402,9 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
     with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
         left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
+
         def both_at(velocity: float) -> bool:
-            for c in (left, right):
-                c.command_velocity(velocity)
-            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
-                       for c in (left, right))
+            return all_at((left, right), velocity)
         wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
         sim.unplug(1)                                     # the cable into the second slave
         wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
@@ -453,10 +449,7 @@ def test_a_slave_that_refuses_its_set_up_after_a_power_cycle_stays_in_pre_op_and
         left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
 
         def both_at(velocity: float) -> bool:
-            for c in (left, right):
-                c.command_velocity(velocity)
-            return all(c.state.running and abs(c.state.measured_velocity - velocity) < 0.05
-                       for c in (left, right))
+            return all_at((left, right), velocity)
         wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
         sim.call(0, 'abort_writes', 0x6060, 0x06090030)
         with caplog.at_level(logging.WARNING):
