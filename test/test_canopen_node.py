@@ -14,8 +14,10 @@ from rclpy.parameter import Parameter
 
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
 from harness import wait_for
+from vfd_ros2.profiles import load_profile
 from vfd_ros2.protocol.cia402 import State
 from vfd_ros2.protocol.repeats import RepeatSummary
+from vfd_ros2.sim.canopen_drive import HEARTBEAT_EVENT, SimulatedCanopenDrive
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 from vfd_ros2.transports.canopen import open_channels
 
@@ -410,6 +412,38 @@ def test_host_heartbeat_on_the_bus_at_its_period(make_can_harness):
         listener.shutdown()
 
 
+def test_a_drive_set_to_run_on_without_its_master_is_commissioned_to_fault(make_can_harness):
+    # CiA 402 0x6007 = 0 ("no action"): a drive that loses the master's heartbeat runs on
+    # at its last target velocity, whatever the host-loss protection set up (outside
+    # audit); 0x605C = 0 lets ~/stop coast. The profile's commissioning writes 1 and 1.
+    h = make_can_harness(sim_initial={'0x6007': 0, '0x605C': 0},
+                         node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wait_for(lambda: sim.value('0x6007') == 1 and sim.value('0x605C') == 1, 3.0,
+             'commissioned')
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running, 6.0, 'running')
+    wheel.node.controller.drive.transport.channel.stop_heartbeat()
+    wait_for(lambda: sim.state is State.FAULT and sim.speed_rpm == 0.0, 3.0,
+             'the drive stops by itself')
+    assert sim.fault_code == 0x8130
+
+
+@pytest.mark.parametrize('option, state, fault', [
+    (0, State.OPERATION_ENABLED, 0),          # no action: runs on
+    (1, State.FAULT, HEARTBEAT_EVENT),
+    (2, State.SWITCH_ON_DISABLED, 0),        # disable voltage: coasts
+    (3, State.QUICK_STOP_ACTIVE, 0)])
+def test_the_twin_reacts_to_a_lost_master_as_0x6007_says(option, state, fault):
+    # So that the commissioning test above can fail: a twin that always faulted would
+    # pass it with or without the write.
+    sim = SimulatedCanopenDrive(load_profile('cia402_velocity'), 1, '', {'0x6007': option})
+    sim.state = State.OPERATION_ENABLED
+    sim._abort_connection(HEARTBEAT_EVENT, 0x11)       # noqa: SLF001 - the reaction alone
+    assert (sim.state, sim.fault_code) == (state, fault)
+    assert sim.emcy_sent == [(HEARTBEAT_EVENT, 0x11, bytes(5))]
+
+
 def test_consumer_heartbeat_set_and_the_drive_stops_when_the_host_heartbeat_stops(
         make_can_harness):
     h = make_can_harness(node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.3})
@@ -583,8 +617,10 @@ def test_a_stop_is_verified_at_standstill_not_when_the_drive_drops_its_run_state
     h = make_can_harness(node_parameters={'auto_enable': True})
     wheel, sim = h.wheels[1], h.sims[1]
     _set(wheel, 'profile_deceleration', 400.0)             # 2 rad/s = 191 rpm: ~0.5 s
-    for option in (1.0, 0.0):
-        _set(wheel, 'disable_operation_option_code', option)
+    for option in (1, 0):
+        # (a commissioning value: the services refuse it, so it is set at the drive, as
+        # if by its keypad or another tool after the connect)
+        sim.node.sdo[0x605C].raw = option
         wheel.trigger('enable')
         wheel.stream(2.0)
         wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,

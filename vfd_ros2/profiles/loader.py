@@ -473,7 +473,8 @@ def _build(path: Path, files_read: list[FileStamp]) -> Profile:
         if comm is not None else None,
         commissioning=tuple(CommissioningWrite(code=str(item['code']),
                                                value=float(item['value']),
-                                               why=str(item.get('why', '')))
+                                               why=str(item.get('why', '')),
+                                               bus_control=bool(item.get('bus_control', True)))
                             for item in data.get('commissioning') or []),
         setpoints={str(k): str(v) for k, v in (data.get('setpoints') or {}).items()},
         notes=tuple(str(n) for n in data.get('notes') or []),

@@ -379,11 +379,17 @@ class CommTimeoutSpec:
 
 @dataclass(frozen=True)
 class CommissioningWrite:
-    """A parameter that must hold a value for the drive to obey the bus."""
+    """A parameter that must hold a value for the drive to obey the bus, or for the driver.
+
+    ``bus_control`` false: a setting the driver relies on (a display unit, the reaction
+    to a lost master) that does not itself hand the drive to the bus; the simulated
+    twins obey the bus whatever its value.
+    """
 
     code: str
     value: float
     why: str = ''
+    bus_control: bool = True
 
 
 class ControlStyle(str, enum.Enum):

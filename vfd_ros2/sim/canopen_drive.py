@@ -312,6 +312,8 @@ class SimulatedCanopenDrive:
     def bus_control(self) -> bool:
         """Obeys the bus only once the commissioning values are set (Kinco A0.04 = 2)."""
         for item in self.profile.commissioning:
+            if not item.bus_control:
+                continue            # (0x6007, 0x605C: modelled for what they do)
             p = self.profile.parameter(item.code)
             if p.index is not None and self._stored(p.index, p.subindex) != p.to_raw(item.value):
                 return False
@@ -473,7 +475,7 @@ class SimulatedCanopenDrive:
         # The fault reaction stops an energised motor; an idle drive only reports it
         # (so a host that restarts finds its idle drives without a fault).
         if self.cia402 and self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
-            self.inject_fault(HEARTBEAT_EVENT, register=COMMUNICATION_REGISTER)
+            self._abort_connection(HEARTBEAT_EVENT, COMMUNICATION_REGISTER)
         else:
             self.run_requested = False
             self._emcy(HEARTBEAT_EVENT, COMMUNICATION_REGISTER)
@@ -484,15 +486,39 @@ class SimulatedCanopenDrive:
         if not moving:
             return
         if self.node.nmt.state != 'OPERATIONAL':
+            if self.cia402 and self._abort_option() == 0:
+                return                  # "no action": the motor runs on, out of the host's reach
             self.state = State.QUICK_STOP_ACTIVE if self.cia402 else self.state
             self.run_requested = False
             return
         deadline = self._stored(0x1400, 5) / 1000.0
         if deadline > 0 and self._last_rpdo is not None and now - self._last_rpdo > deadline:
             if self.cia402:
-                self.inject_fault(RPDO_TIMEOUT)
+                self._abort_connection(RPDO_TIMEOUT, COMMUNICATION_REGISTER)
             else:
                 self.run_requested = False
+
+    def _abort_option(self) -> int:
+        """Return 0x6007 where the profile has it; 1 (fault) where it has not."""
+        return self._stored(0x6007, 0) if (0x6007, 0) in self.parameters else 1
+
+    def _abort_connection(self, code: int, register: int) -> None:
+        """React to a lost master as 0x6007 says (CiA 402-2 abort connection option code).
+
+        0 no action (the motor runs on, EMCY only), 1 fault, 2 disable voltage (coast),
+        3 quick stop; a profile without the object: fault.
+        """
+        option = self._abort_option()
+        if option == 1:
+            self.inject_fault(code, register=register)
+            return
+        self._emcy(code, register)
+        if option == 2:
+            self.state = State.SWITCH_ON_DISABLED
+        elif option == 3:
+            self.state = State.QUICK_STOP_ACTIVE
+        else:
+            self._last_rpdo = None      # runs on; one EMCY, not one per tick
 
     def _produce(self, now: float) -> None:
         period = self._stored(0x1017, 0) / 1000.0

@@ -220,6 +220,8 @@ class SimulatedDrive:
     def bus_control(self) -> bool:
         """Return whether the drive obeys the bus: only once the commissioning values are set."""
         for item in self.profile.commissioning:
+            if not item.bus_control:
+                continue            # (a display unit: Veichi FA.12)
             parameter = self.profile.parameter(item.code)
             if self._raw(parameter) != round(item.value / parameter.scale):
                 return False
