@@ -930,9 +930,20 @@ class DriveController:
         # name it for its bus (EtherCAT: the SM watchdog's), else the profile's.
         spec = self.drive.profile.comm_timeout
         own = getattr(self.drive, 'own_absence_fault', None)
+        guessed = False
         if own is None and spec is not None:
             own = (spec.fault_code, spec.fault_subcode)
+            entry = self.drive.profile.faults.table.get(spec.fault_code)
+            guessed = entry is not None and entry.confidence == 'low'
         own_absence = own is not None and (fault.code, fault.subcode) == tuple(own)
+        if own_absence and first_after_connect and guessed:
+            # A number the manual does not print (Veichi: the fault table's row, outside
+            # audit) may be another fault's, an overcurrent trip: it is not reset unasked.
+            log.warning('%s: %s %s found at connect is not reset by itself: the profile '
+                        "only guesses this fault's number (confidence low), so it may be "
+                        'another fault; ~/reset_fault clears it', self.drive.hardware_id,
+                        fault.display, fault.name)
+            own_absence = False
         if own_absence and first_after_connect:
             # The drive stopped itself because this host was silent (a restart, an
             # unplugged cable): the stop is written, so the fault is reset once.
