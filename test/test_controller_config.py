@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -167,12 +168,23 @@ def settings(**values):
 
 
 def test_velocity_scaling_uses_nameplate_defaults():
+    # The AM's 100 % is the synchronous speed of its rated frequency D00.04 (50 Hz at
+    # 2 pole pairs), not its rated speed D00.05 (1330 rpm): outside audit of the profile.
     profile = shipped_profile('boneng_am')
     scaling = config.velocity_scaling(profile, settings(gear_ratio=10.0))
-    assert scaling.rated_speed_rpm == profile.parameters[profile.velocity.rated_speed].default
-    assert scaling.rated_speed_rpm == 1330.0                # D00.05 factory value
+    assert profile.parameters[profile.velocity.rated_frequency].default == 50.0
+    assert scaling.rated_speed_rpm == 1500.0
     assert scaling.pole_pairs == profile.parameters[profile.velocity.pole_pairs].default == 2
     assert scaling.gear_ratio == 10.0 and not scaling.invert_direction
+    # More pole pairs, a slower synchronous speed; a configured 100 % wins.
+    assert config.velocity_scaling(profile, settings(**{'motor.pole_pairs': 4})) \
+        .rated_speed_rpm == 750.0
+    assert config.velocity_scaling(profile, settings(**{'motor.rated_speed_rpm': 1400.0})) \
+        .rated_speed_rpm == 1400.0
+    # Without rated_frequency, a percent is of the rated speed (D00.05, 1330 rpm).
+    of_rated_speed = dataclasses.replace(
+        profile, velocity=dataclasses.replace(profile.velocity, rated_frequency=''))
+    assert config.velocity_scaling(of_rated_speed, settings()).rated_speed_rpm == 1330.0
 
 
 def test_velocity_scaling_prefers_configured_values():

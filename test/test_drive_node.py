@@ -15,7 +15,7 @@ from harness import wait_for
 from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
-RATED_RPM = 1330.0   # D00.05 default: 100 % setpoint
+RATED_RPM = 1500.0   # 100 % setpoint: D00.04 50 Hz at D00.09 2 pole pairs (synchronous)
 GEAR = 10.0
 
 
@@ -351,10 +351,12 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
         ('stop_mode', 7.0): 'above the maximum',
         # What the node's own link and velocity scaling depend on: written, the drive
         # stops answering here, or the wheel runs at another speed than commanded
-        # (D00.05 = 2660 rpm made it run at twice the command, beyond max_velocity).
+        # (D00.05 = 2660 rpm made it run at twice the command, beyond max_velocity, when
+        # 100 % was the rated speed; it is the rated frequency's synchronous speed now).
         ('C02.02', 9.0): 'how this link reaches the drive',
         ('C02.00', 3.0): 'how this link reaches the drive',
-        ('D00.05', 2660.0): 'motor.rated_speed_rpm',
+        ('D00.04', 100.0): 'motor.rated_speed_rpm',
+        ('D00.09', 4.0): 'motor.pole_pairs',
         ('C02.06', 1.0): 'the driver writes percent',
     }
     for (name, value), why in cases.items():
@@ -365,7 +367,7 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
     unknown = h.call(GetDriveParameter, 'get_drive_parameter',
                      GetDriveParameter.Request(name='nope'))
     assert not unknown.success and 'unknown parameter' in unknown.message
-    for code in ('C02.02', 'D00.05', 'C02.06'):
+    for code in ('C02.02', 'D00.04', 'D00.09', 'C02.06'):
         got = h.call(GetDriveParameter, 'get_drive_parameter',
                      GetDriveParameter.Request(name=code))
         assert got.success and not got.writable, (code, got.message)

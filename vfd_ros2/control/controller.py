@@ -151,7 +151,11 @@ def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
                        "the node's transport settings")
     velocity = drive.profile.velocity
     units = {velocity.setpoint_unit, velocity.feedback_unit}
-    for code, unit, setting in ((velocity.rated_speed, SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
+    # (a percent of the rated frequency is of its synchronous speed: the pole pairs too)
+    percent_of = (velocity.rated_frequency, velocity.pole_pairs) if velocity.rated_frequency \
+        else (velocity.rated_speed, '')
+    for code, unit, setting in ((percent_of[0], SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
+                                (percent_of[1], SpeedUnit.PERCENT, 'motor.pole_pairs'),
                                 (velocity.pole_pairs, SpeedUnit.HZ, 'motor.pole_pairs')):
         if code and unit in units:
             found[code] = (f"the node's velocity scaling uses it ({setting}): written here, the "

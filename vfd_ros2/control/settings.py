@@ -42,7 +42,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting('gear_ratio', 1.0, 'motor turns per output-shaft turn', 0.001, 10000.0),
     Setting('invert_direction', False, 'reverse the sign between ROS and the drive'),
     Setting('motor.rated_speed_rpm', 0.0,
-            "motor rated speed = 100 % setpoint; 0 = the profile's nameplate default",
+            "motor rpm of a 100 % setpoint; 0 = the profile's nameplate default (the rated "
+            'speed, or where the profile says so, the synchronous speed of the rated frequency)',
             0.0, 100000.0),
     Setting('motor.pole_pairs', 0, 'motor pole pairs (Hz <-> rpm); 0 = profile default', 0, 100),
     Setting('max_velocity', 10.0, 'rad/s at the output shaft; larger commands are clamped',
@@ -101,12 +102,15 @@ def velocity_scaling(profile: Profile, values: Mapping[str, Any]) -> VelocitySca
         if code and profile.parameters[code].default:
             return float(profile.parameters[code].default)
         return fallback
+    pole_pairs = int(nameplate('motor.pole_pairs', profile.velocity.pole_pairs, 2))
+    base = float(values.get('motor.rated_speed_rpm', 0) or 0) or \
+        profile.velocity.percent_base_rpm(
+            lambda code: pole_pairs if code == profile.velocity.pole_pairs else
+            float(profile.parameters[code].default or 0), 1500.0)
     return VelocityScaling(
         gear_ratio=float(values['gear_ratio']),
         invert_direction=bool(values['invert_direction']),
-        rated_speed_rpm=nameplate('motor.rated_speed_rpm', profile.velocity.rated_speed, 1500.0),
-        pole_pairs=int(nameplate('motor.pole_pairs', profile.velocity.pole_pairs, 2)),
-    )
+        rated_speed_rpm=base, pole_pairs=pole_pairs)
 
 
 def shown_period(status_rate: float, diagnostics_rate: float) -> float:

@@ -446,6 +446,7 @@ def _build(path: Path, files_read: list[FileStamp]) -> Profile:
             feedback_unit=SpeedUnit(velocity['feedback_unit']),
             direction=DirectionMode(velocity.get('direction', 'setpoint_sign')),
             rated_speed=str(velocity.get('rated_speed', '')),
+            rated_frequency=str(velocity.get('rated_frequency', '')),
             pole_pairs=str(velocity.get('pole_pairs', '')),
             acceleration_time=str(velocity.get('acceleration_time', '')),
             deceleration_time=str(velocity.get('deceleration_time', '')),
@@ -569,7 +570,8 @@ def _check_references(profile: Profile) -> None:
         ('control.command', profile.control.command),
         ('faults.code', profile.faults.code),
     ]
-    for label in ('rated_speed', 'pole_pairs', 'acceleration_time', 'deceleration_time'):
+    for label in ('rated_speed', 'rated_frequency', 'pole_pairs', 'acceleration_time',
+                  'deceleration_time'):
         code = getattr(profile.velocity, label)
         if code:
             referenced.append((f'velocity.{label}', code))

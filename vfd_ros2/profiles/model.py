@@ -16,7 +16,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
+from typing import Callable, Mapping
 
 from ..errors import ParameterError, quote
 from ..protocol.scaling import SpeedUnit
@@ -243,6 +243,23 @@ class VelocitySpec:
     acceleration_time: str = ''
     deceleration_time: str = ''
     note: str = ''
+    #: where a percent setpoint's 100 % is the motor's rated frequency, not its rated
+    #: speed: that parameter; 100 % = its synchronous speed, rated_frequency x 60 / pole_pairs
+    rated_frequency: str = ''
+
+    def percent_base_rpm(self, value_of: Callable[[str], float], fallback: float) -> float:
+        """Return the motor rpm a percent setpoint's 100 % stands for.
+
+        ``value_of(code)`` gives a nameplate parameter's value (0 where unknown);
+        ``fallback`` where the profile names none or the value is 0.
+        """
+        if self.rated_frequency:
+            hertz = value_of(self.rated_frequency)
+            pairs = value_of(self.pole_pairs) if self.pole_pairs else 0.0
+            return hertz * 60.0 / pairs if hertz > 0 and pairs > 0 else fallback
+        if self.rated_speed:
+            return value_of(self.rated_speed) or fallback
+        return fallback
 
 
 class PositionSource(str, enum.Enum):

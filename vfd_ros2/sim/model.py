@@ -285,10 +285,14 @@ class SimulatedDrive:
             self._last_tick = now
             self._check_comm_timeout(now)
             velocity = self.profile.velocity
+            # (the ramp times run from zero to the rated speed, MH L1255; a percent
+            # setpoint's 100 % may be the rated frequency's synchronous speed instead)
             rated_rpm = self._value_or(velocity.rated_speed, 1500.0) or 1500.0
             pole_pairs = self._value_or(velocity.pole_pairs, 2.0) or 2.0
+            percent_base = velocity.percent_base_rpm(lambda code: self._value_or(code, 0.0),
+                                                     rated_rpm)
             running = self.run_requested and not self.fault_code and self.bus_control()
-            target = self._target_rpm(rated_rpm, pole_pairs) if running else 0.0
+            target = self._target_rpm(percent_base, pole_pairs) if running else 0.0
             accel = self._value_or(velocity.acceleration_time, 1.0)
             decel = self._value_or(velocity.deceleration_time, 1.0)
             if self.fault_code:
@@ -306,7 +310,7 @@ class SimulatedDrive:
                 self.output_active = True
             elif self.speed_rpm == 0.0:
                 self.output_active = False
-            self._refresh_monitor(target, rated_rpm, pole_pairs)
+            self._refresh_monitor(target, percent_base, pole_pairs)
 
     def _check_comm_timeout(self, now: float) -> None:
         spec = self.profile.comm_timeout
