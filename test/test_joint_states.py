@@ -295,6 +295,23 @@ def test_ros2_control_commands_keep_the_drive_rules(joint_bus):
     assert joint_bus.statuses()['left_wheel'].run_state.label == 'disabled'
 
 
+def test_a_joint_command_with_one_bad_wheel_moves_neither(joint_bus):
+    # Half a message applied turns a differential-drive robot (outside audit: a NaN for
+    # the left wheel and 1e308 for the right ran the right wheel alone, clamped to its
+    # maximum). A non-finite velocity, or a wheel named twice, refuses the whole message.
+    sims, bridge = joint_bus.sims, joint_bus.bus.joints
+    for bad in (JointState(name=list(WHEELS), velocity=[math.nan, 1e308]),
+                JointState(name=list(WHEELS), velocity=[1.0, math.inf]),
+                JointState(name=['left_wheel', 'right_wheel', 'left_wheel'],
+                           velocity=[1.0, 1.0, -1.0])):
+        before = bridge.refused
+        joint_bus.command['message'] = bad
+        wait_for(lambda: bridge.refused >= before + 3, 3.0, 'refused whole')
+        assert all(s.speed_rpm == 0.0 and not s.run_requested for s in sims.values()), bad
+    joint_bus.command['message'] = velocity_command(left_wheel=1.0, right_wheel=1.0)
+    wait_for(lambda: all(abs(s.speed_rpm) > 50 for s in sims.values()), 6.0, 'both move')
+
+
 def test_joint_names_must_be_unique_on_a_bus():
     drives = [SimpleNamespace(joint_name='same'), SimpleNamespace(joint_name='same')]
     with pytest.raises(ParameterError, match='same'):

@@ -14,7 +14,10 @@ diff_drive_controller) drives the wheels without new C++:
   them (a stream that stops lets the watchdog stop the wheel);
 - names of other joints are ignored (one robot may have several buses); a
   message whose ``velocity`` array does not match its ``name`` array (e.g. a
-  position command interface) is refused whole, with a warning;
+  position command interface), that names one of these joints twice or gives one
+  a velocity that is not a finite number is refused whole, with a warning: half
+  a message applied would turn a differential-drive robot (outside audit: a NaN
+  for the left wheel and 1e308 for the right ran the right wheel alone);
 - the wheels' states are published together as one JointState at
   ``joint_states_rate`` (position rad, velocity rad/s, effort N·m where
   every wheel measures one).
@@ -71,12 +74,21 @@ class JointCommandBridge:
                 self._refuse(f'{len(msg.name)} names but {len(msg.velocity)} velocities: '
                              'the wheels take a velocity command interface only')
                 return
-            for name, velocity in zip(msg.name, msg.velocity):
-                drive = self.drives.get(name)
-                if drive is None:
-                    continue                    # another bus's joint
-                outcome = drive.controller.command_velocity(float(velocity))
-                if outcome is CommandOutcome.REJECTED:
+            ours = [(name, velocity) for name, velocity in zip(msg.name, msg.velocity)
+                    if name in self.drives]      # (the others: another bus's joints)
+            names = [name for name, _ in ours]
+            twice = sorted({name for name in names if names.count(name) > 1})
+            if twice:
+                self._refuse(f'{", ".join(twice)} named more than once: none applied')
+                return
+            bad = [f'{name}: velocity {velocity}' for name, velocity in ours
+                   if not math.isfinite(velocity)]
+            if bad:
+                self._refuse(f'{"; ".join(bad)} is not a finite number: none applied')
+                return
+            for name, velocity in ours:
+                outcome = self.drives[name].controller.command_velocity(float(velocity))
+                if outcome is CommandOutcome.REJECTED:      # (checked above: not expected)
                     self._refuse(f'{name}: velocity {velocity} is not a finite number')
         except Exception as exc:  # noqa: BLE001 - never raise into the executor
             self.node.get_logger().error(f'joint command failed: {exc}',
