@@ -539,7 +539,7 @@ class DiffDriveNode(Node):
             self.odometry.hold()
             self.odometry_source = 'hold'
             self.get_logger().warning(f'odometry holds its pose: {problem}',
-                                      throttle_duration_sec=2.0)
+                                      throttle_duration_sec=10.0)
         elif positions is not None:
             updates = (self.left_position.updates, self.right_position.updates)
             # The wheels report on their own topics: advance only once both have a
@@ -614,7 +614,8 @@ def make_diff_drive_node(args: list[str] | None = None) -> DiffDriveNode:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node('diff_drive', lambda: make_diff_drive_node(args), args)
+    return run_node('diff_drive', lambda: make_diff_drive_node(args), args,
+                    cleanup='the node ends (the wheels stop on their own command watchdogs)')
 
 
 if __name__ == '__main__':      # python -m, as well as the ros2 run launcher

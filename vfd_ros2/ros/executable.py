@@ -37,17 +37,19 @@ CONFIGURATION_ERRORS = (VfdError, ParameterException, NameValidationException, V
 
 
 def run_node(name: str, make_node: Callable[[], Node], args: list[str] | None = None,
-             extra_nodes: Callable[[Node], Iterable[Node]] = lambda node: ()) -> int:
+             extra_nodes: Callable[[Node], Iterable[Node]] = lambda node: (),
+             cleanup: str = 'the drives are stopped first') -> int:
     """Create the node, spin it (and the nodes it owns) until Ctrl-C / SIGTERM, clean up.
 
     ``destroy_node`` runs on every exit path, so a drive is commanded to stop
-    before its port closes. Returns the process exit code.
+    before its port closes. ``cleanup`` says what the shutdown does, to a second
+    Ctrl-C. Returns the process exit code.
     """
     # A control thread woken by a reply waits for the GIL until the thread holding it
     # lets go: after the switch interval (5 ms by default) when the executor is busy
     # with callbacks. That wait went into every transaction of a 32-drive bus.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL)
-    with interrupts_through_rclpy(name) as interrupts:
+    with interrupts_through_rclpy(name, cleanup) as interrupts:
         return _run_node(name, make_node, args, extra_nodes, interrupts)
 
 
@@ -111,8 +113,9 @@ class Interrupts:
     clean-up is bounded; SIGKILL is left for one that is not.
     """
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, cleanup: str = 'the drives are stopped first') -> None:
         self.name = name
+        self.cleanup = cleanup
         self.interrupted = False
         self._told = False
 
@@ -122,12 +125,13 @@ class Interrupts:
         elif not self._told:
             self._told = True
             # (os.write: a print here could land inside the bridge's own stderr write)
-            os.write(2, f'[WARN] [{self.name}]: shutting down: the drives are stopped first; '
+            os.write(2, f'[WARN] [{self.name}]: shutting down: {self.cleanup}; '
                         'Ctrl-C again is ignored\n'.encode())
 
 
 @contextmanager
-def interrupts_through_rclpy(name: str) -> Iterator[Interrupts | None]:
+def interrupts_through_rclpy(name: str, cleanup: str = 'the drives are stopped first'
+                             ) -> Iterator[Interrupts | None]:
     """Handle SIGINT with ``Interrupts``; None in a thread, or if somebody chose a handler.
 
     Once interrupted, SIGINT is ignored after the clean-up: the interpreter's
@@ -140,7 +144,7 @@ def interrupts_through_rclpy(name: str) -> Iterator[Interrupts | None]:
             previous is not signal.default_int_handler:
         yield None
         return
-    interrupts = Interrupts(name)
+    interrupts = Interrupts(name, cleanup)
     signal.signal(signal.SIGINT, interrupts)
     try:
         yield interrupts

@@ -179,7 +179,8 @@ class SimDriveNode(Node):
                 units = {d.unit_id for d in self.drives}
                 if isinstance(value, (str, int, float)) or any(
                         isinstance(u, (bool, float)) or u not in units for u in value):
-                    raise ValueError(f'silent_unit_ids: {value!r} is not a list of the units '
+                    shown = value if isinstance(value, (str, int, float)) else list(value)
+                    raise ValueError(f'silent_unit_ids: {shown!r} is not a list of the units '
                                      f'on this line ({sorted(units)})')
                 silent = set(value)
                 changes.append(lambda s=silent: [setattr(d, 'silent', d.unit_id in s)
@@ -287,7 +288,8 @@ def make_sim_drive_node(args: list[str] | None = None) -> SimDriveNode:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node('sim_drive', lambda: make_sim_drive_node(args), args)
+    return run_node('sim_drive', lambda: make_sim_drive_node(args), args,
+                    cleanup='the line is served until the driver has stopped the drives')
 
 
 if __name__ == '__main__':      # python -m, as well as the ros2 run launcher
