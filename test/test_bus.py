@@ -822,7 +822,7 @@ def test_a_profile_without_a_map_for_the_transport_is_refused():
     ({'transport.parity': 'X'}, 'N, E or O'),
     ({'transport.parity': 'even'}, 'N, E or O'),
     ({'transport.unit_id': 0}, 'unit id 0 is the broadcast address'),
-    # 1000 rad/s is 718 % of the AM's rated speed: its setpoint P07.33 takes 100 %
+    # 1000 rad/s is 637 % of the AM's 100 % (1500 rpm): its setpoint P07.33 takes 100 %
     ({'max_velocity': 1000.0}, r'max_velocity 1000 rad/s: .* P07\.33 .* beyond its range'),
 ])
 def test_serial_link_settings_no_drive_can_use_are_refused(settings, why):

@@ -429,6 +429,23 @@ def test_a_drive_set_to_run_on_without_its_master_is_commissioned_to_fault(make_
     assert sim.fault_code == 0x8130
 
 
+def test_a_drive_that_takes_no_action_on_a_lost_master_has_no_host_loss_protection(
+        make_can_harness):
+    # With apply_commissioning false nothing writes 0x6007: read at connect, 0 ("no
+    # action") leaves heartbeat consumer and RPDO deadline without effect on the motor,
+    # and the status said they protected it (outside audit).
+    h = make_can_harness(sim_initial={'0x6007': 0},
+                         node_parameters={'drive_comm_timeout': 0.3,
+                                          'apply_commissioning': False})
+    wheel = h.wheels[1]
+    status = wheel.wait_status(lambda s: s.online, 6.0, 'online')
+    assert status.host_loss_timeout == 0.0
+    assert '0x6007 abort connection option = 0, no action' in status.host_loss_protection
+    diagnostic = wheel.node.diagnostic_status()
+    assert diagnostic.level == DiagnosticStatus.WARN
+    assert 'no drive-side host-loss protection' in diagnostic.message
+
+
 @pytest.mark.parametrize('option, state, fault', [
     (0, State.OPERATION_ENABLED, 0),          # no action: runs on
     (1, State.FAULT, HEARTBEAT_EVENT),

@@ -58,6 +58,32 @@ def test_velocity_command_reaches_wire_and_motor(make_harness):
     status = h.wait_status(lambda s: abs(s.measured_velocity + 1.5) < 0.02, 5.0, 'reverse')
     assert status.reverse and h.sim.speed_rpm < 0
     assert write_frame(0xE721, expected_raw(-1.5)) in h.frames_after(since)
+    # Drive and node agree on the nameplate: nothing to tell.
+    assert h.node.diagnostic_status().level == DiagnosticStatus.OK
+
+
+@pytest.mark.parametrize('configured, told', [({}, True),
+                                               ({'motor.rated_speed_rpm': 1800.0}, False)])
+def test_a_drive_whose_nameplate_scales_speed_otherwise_is_told(make_harness, configured,
+                                                                 told):
+    # A drive set up for a 60 Hz motor makes 100 % = 1800 rpm; the node's profile default
+    # is 1500 rpm: the wheel runs 20 % fast with nothing said (outside audit). Read at
+    # connect: a WARN naming both; not where the integrator set the 100 % himself.
+    h = make_harness(sim_initial={'D00.04': 60.0},
+                     node_parameters={'auto_enable': True, **configured})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    diagnostic = h.node.diagnostic_status()
+    note = "the drive's nameplate (D00.04 60, D00.09 2) makes a 100 % setpoint 1800 rpm"
+    if told:
+        assert diagnostic.level == DiagnosticStatus.WARN
+        assert note in diagnostic.message and 'set motor.rated_speed_rpm: 1800' in \
+            diagnostic.message and '120% of the commanded speed' in diagnostic.message
+    else:
+        assert diagnostic.level == DiagnosticStatus.OK, diagnostic.message
+        # ... and with the 100 % set to the drive's, the wheel runs at the command.
+        status = h.wait_status(lambda s: abs(s.measured_velocity - 1.0) < 0.02, 5.0, '1 rad/s')
+        assert status.running
 
 
 def test_invert_direction_and_clamp(make_harness):
@@ -356,6 +382,7 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
         ('C02.02', 9.0): 'how this link reaches the drive',
         ('C02.00', 3.0): 'how this link reaches the drive',
         ('D00.04', 100.0): 'motor.rated_speed_rpm',
+        ('D00.05', 2660.0): 'motor.rated_speed_rpm',      # (the drive derives D00.09 from it)
         ('D00.09', 4.0): 'motor.pole_pairs',
         ('C02.06', 1.0): 'the driver writes percent',
     }
@@ -367,7 +394,7 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
     unknown = h.call(GetDriveParameter, 'get_drive_parameter',
                      GetDriveParameter.Request(name='nope'))
     assert not unknown.success and 'unknown parameter' in unknown.message
-    for code in ('C02.02', 'D00.04', 'D00.09', 'C02.06'):
+    for code in ('C02.02', 'D00.04', 'D00.05', 'D00.09', 'C02.06'):
         got = h.call(GetDriveParameter, 'get_drive_parameter',
                      GetDriveParameter.Request(name=code))
         assert got.success and not got.writable, (code, got.message)

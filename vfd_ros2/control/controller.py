@@ -151,11 +151,14 @@ def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
                        "the node's transport settings")
     velocity = drive.profile.velocity
     units = {velocity.setpoint_unit, velocity.feedback_unit}
-    # (a percent of the rated frequency is of its synchronous speed: the pole pairs too)
-    percent_of = (velocity.rated_frequency, velocity.pole_pairs) if velocity.rated_frequency \
-        else (velocity.rated_speed, '')
+    # (a percent of the rated frequency is of its synchronous speed: the pole pairs too,
+    # and the rated speed, from which a drive that prints its pole pairs read-only works
+    # them out: outside audit)
+    percent_of = (velocity.rated_frequency, velocity.pole_pairs, velocity.rated_speed) \
+        if velocity.rated_frequency else (velocity.rated_speed, '', '')
     for code, unit, setting in ((percent_of[0], SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
                                 (percent_of[1], SpeedUnit.PERCENT, 'motor.pole_pairs'),
+                                (percent_of[2], SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
                                 (velocity.pole_pairs, SpeedUnit.HZ, 'motor.pole_pairs')):
         if code and unit in units:
             found[code] = (f"the node's velocity scaling uses it ({setting}): written here, the "
@@ -192,6 +195,7 @@ class DriveController:
         self._cycle = 0
         self._reading = Reading()
         self._settings_refused: tuple[str, ...] = ()
+        self._nameplate_notes: tuple[str, ...] = ()   # the drive's nameplate against the scaling
         self._command_refused = ''      # why the last command write was refused, if it was
         self._actions = ActionQueue(drive.hardware_id)
         self._driver_settings = settings_the_driver_depends_on(drive)
@@ -793,6 +797,10 @@ class DriveController:
                         'requested)', drive.hardware_id, self.protection.describe(),
                         self.config.drive_comm_timeout)
         self._settings_refused = tuple(problems)
+        note = getattr(drive, 'nameplate_note', '')       # (a Modbus drive compares them)
+        if note and (note,) != self._nameplate_notes:
+            log.warning('%s: %s', drive.hardware_id, note)
+        self._nameplate_notes = (note,) if note else ()
         # A drive may refuse (part of) the planned protection and say what holds;
         # Drive.protection_applied is optional (None: the plan holds as written).
         self.protection_applied = getattr(drive, 'protection_applied', None)
@@ -1136,7 +1144,7 @@ class DriveController:
             protection=self._protection_written(),
             unavailable=tuple(reading.unavailable.values()) + self._settings_refused
             + ((self._command_refused,) if self._command_refused else ()),
-            link_notes=self.drive.transport.link_notes + self.loop_notes,
+            link_notes=self.drive.transport.link_notes + self.loop_notes + self._nameplate_notes,
             read_at=read_at,
             not_stopping=not_stopping,
             command_gaps=gaps,

@@ -110,7 +110,9 @@ def velocity_scaling(profile: Profile, values: Mapping[str, Any]) -> VelocitySca
     return VelocityScaling(
         gear_ratio=float(values['gear_ratio']),
         invert_direction=bool(values['invert_direction']),
-        rated_speed_rpm=base, pole_pairs=pole_pairs)
+        rated_speed_rpm=base, pole_pairs=pole_pairs,
+        rated_from_profile=not float(values.get('motor.rated_speed_rpm', 0) or 0),
+        pole_pairs_from_profile=not int(values.get('motor.pole_pairs', 0) or 0))
 
 
 def shown_period(status_rate: float, diagnostics_rate: float) -> float:

@@ -91,7 +91,8 @@ class DriveState(NamedTuple):
     link_closed: str = ''           # why the host closed the link on purpose ('' = it did not)
     protection: HostLossProtection = HostLossProtection()
     unavailable: tuple[str, ...] = ()      # values and settings the drive refuses
-    link_notes: tuple[str, ...] = ()       # what to know about the link (e.g. adapter latency)
+    link_notes: tuple[str, ...] = ()       # what to know about the link (adapter latency, a
+                                           # nameplate that scales speed otherwise)
     read_at: float = math.nan       # the controller's clock when it was taken (after a poll)
     not_stopping: str = ''          # held idle, the drive has run on past stop_timeout: why
     command_gaps: int = 0           # commands that came soon after a watchdog stop

@@ -439,7 +439,8 @@ def plan_restore(backup: Backup, live: Backup, access: ParameterAccess,
             needed = next(item for item in profile.commissioning if item.code == code)
             if not math.isclose(entry.value, needed.value):
                 plan.warnings.append(
-                    f'{code} = {_clean(entry.value)} in the file, but bus control needs '
+                    f'{code} = {_clean(entry.value)} in the file, but '
+                    f'{"bus control" if needed.bus_control else "the driver"} needs '
                     f'{_clean(needed.value)} ({needed.why}); a driver with '
                     'apply_commissioning writes it back at connect')
     if switch and switch in backup.entries and switch not in profile.control_owned and \

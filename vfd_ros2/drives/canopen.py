@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 from canopen.emcy import EmcyError
@@ -83,6 +84,8 @@ OPERATIONAL_WAIT_LONGEST = 5.0
 #: CiA 301 objects of the drive-side protection against host death
 HEARTBEAT_CONSUMER = (0x1016, 1)      # consumer heartbeat time 1: node id << 16 | ms
 RPDO1_DEADLINE = (0x1400, 5)          # RPDO1 event timer = deadline monitoring, ms
+#: CiA 402 abort connection option code: what the drive does when those see the host gone
+ABORT_CONNECTION = 0x6007
 
 
 def cia_fault(code: int, register: int | None = None) -> FaultInfo:
@@ -308,6 +311,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             self._write(self.objects.mode_of_operation, self.objects.mode_value)
         if apply_commissioning:
             problems += self._commission()
+        self.protection_applied = self._abort_reaction(self.protection_applied, problems)
         for group in self.tpdo_layout:        # the values before the first TPDO arrives
             for role, obj in group:
                 self._values[role] = self._read(obj)
@@ -464,6 +468,36 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         notes = [note for note in (protection.note, *refused) if note]
         return HostLossProtection(' + '.join(held), ms / 1000, protection.requested,
                                   '; '.join(notes))
+
+    def _abort_reaction(self, protection: HostLossProtection,
+                        problems: list[str]) -> HostLossProtection:
+        """Return ``protection`` as the drive's reaction to a lost master makes it.
+
+        The heartbeat consumer and the RPDO deadline only tell the drive that the
+        master is gone; CiA 402's 0x6007 (abort connection option code) says what it
+        does then, and 0 is nothing: the motor runs on at its last target (outside
+        audit). Read where the profile has the object (commissioning writes 1): 0 is
+        no protection; a drive without it is told as the maker's reaction.
+        """
+        parameter = next((p for p in self.profile.parameters.values()
+                          if p.index == ABORT_CONNECTION and p.subindex == 0), None)
+        if parameter is None or not protection.active:
+            return protection
+        try:
+            option = parameter.from_raw(self._read_raw(parameter))
+        except (ParameterError, ProtocolException) as exc:
+            # (a refused commissioning write of it is in problems already)
+            note = (f'0x6007 (the reaction to a lost master) unreadable ({exc}): the '
+                    "maker's reaction, not verified")
+            return replace(protection, note='; '.join(n for n in (protection.note, note) if n))
+        if option == 0:
+            note = ('0x6007 abort connection option = 0, no action: the drive runs on at '
+                    'its last target velocity when the host dies, whatever '
+                    f'{protection.mechanism} sees; only the host watchdog stops the motor '
+                    '(set 0x6007 to 1, or apply_commissioning: true)')
+            log.warning('%s: %s', self.hardware_id, note)
+            return HostLossProtection(requested=protection.requested, note=note)
+        return protection
 
     def _commission(self) -> list[str]:
         problems = []

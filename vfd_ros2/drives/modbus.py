@@ -7,6 +7,7 @@ a ``VfdError``; the caller (``vfd_ros2.control``) owns threads, timing and polic
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import time
 from functools import partial
@@ -52,6 +53,12 @@ T = TypeVar('T')
 #: lasts costs one exception reply this often; one that passed (a burst of frame errors)
 #: stops being reported, and blocking a drive, within it.
 REFUSAL_RETRY = 5.0
+
+#: relative difference from which the drive's nameplate and the node's scaling disagree
+#: (above the 0.1 % of a setpoint step and a nameplate's rounding)
+NAMEPLATE_TOLERANCE = 0.01
+
+log = logging.getLogger(__name__)
 
 
 class ModbusDrive(DriveOnLink):
@@ -130,6 +137,8 @@ class ModbusDrive(DriveOnLink):
         #: a RAM/EEPROM switch a parameter write could not set back (the link failed
         #: between): set back at the next connect
         self._switch_pending: tuple[Parameter, int] | None = None
+        #: what configure() found where the drive's nameplate and the node's scaling differ
+        self.nameplate_note = ''
 
     @property
     def link_parameters(self) -> tuple[str, ...]:
@@ -279,7 +288,49 @@ class ModbusDrive(DriveOnLink):
                 self._configured.append((parameter, raw))
             except (ParameterError, ProtocolException) as exc:
                 problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
+        self.nameplate_note = self._nameplate_note()
         return problems
+
+    def _nameplate_note(self) -> str:
+        """Say where the drive's own nameplate scales speed otherwise than the node ('' if not).
+
+        Only for what the node took from the profile's defaults: a drive set up for
+        another motor (60 Hz, four poles) makes another 100 % or another rpm per Hz,
+        and the wheel would run faster or slower than commanded with nothing said
+        (outside audit). A nameplate the drive refuses to read is not compared.
+        """
+        velocity, scaling = self.profile.velocity, self.scaling
+        units = {velocity.setpoint_unit, velocity.feedback_unit}
+        read: dict[str, float] = {}
+
+        def value_of(code: str) -> float:
+            if code not in read:
+                read[code] = self.read_value(self.profile.parameter(code)).value
+            return read[code]
+        notes = []
+        try:
+            if SpeedUnit.PERCENT in units and scaling.rated_from_profile and (
+                    velocity.rated_frequency or velocity.rated_speed):
+                theirs = velocity.percent_base_rpm(value_of, 0.0)
+                ours = scaling.rated_speed_rpm
+                if theirs > 0 and not math.isclose(theirs, ours, rel_tol=NAMEPLATE_TOLERANCE):
+                    shown = ', '.join(f'{code} {value:g}' for code, value in read.items())
+                    notes.append(
+                        f"the drive's nameplate ({shown}) makes a 100 % setpoint {theirs:g} "
+                        f"rpm, this node's (the profile's default) {ours:g} rpm: the wheel "
+                        f'would run at {theirs / ours:.0%} of the commanded speed; set '
+                        f'motor.rated_speed_rpm: {theirs:g}')
+            if SpeedUnit.HZ in units and scaling.pole_pairs_from_profile and velocity.pole_pairs:
+                pairs = value_of(velocity.pole_pairs)
+                if pairs > 0 and pairs != scaling.pole_pairs:
+                    notes.append(
+                        f"the drive's nameplate has {pairs:g} pole pairs ({velocity.pole_pairs}), "
+                        f"this node (the profile's default) {scaling.pole_pairs}: the wheel "
+                        f'would run at {scaling.pole_pairs / pairs:.0%} of the commanded '
+                        f'speed; set motor.pole_pairs: {pairs:g}')
+        except (ParameterError, ProtocolException) as exc:
+            log.debug('%s: nameplate not compared: %s', self.hardware_id, exc)
+        return '; '.join(notes)
 
     def refresh_host_loss(self, protection: HostLossProtection) -> None:
         """Write a new comm-loss timeout while online (the bus's real timing outgrew the plan).

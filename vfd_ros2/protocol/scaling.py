@@ -1,7 +1,8 @@
 """Velocity scaling: rad/s at the output shaft <-> the drive's native speed unit.
 
 REP 103: the ROS side speaks rad/s at the wheel (output) shaft. The motor turns
-``gear_ratio`` times faster; the drive speaks percent of rated speed, Hz or rpm.
+``gear_ratio`` times faster; the drive speaks percent (of ``rated_speed_rpm``: the
+profile's 100 %, a rated speed or a rated frequency's synchronous speed), Hz or rpm.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from ..errors import ParameterError
 class SpeedUnit(str, enum.Enum):
     """Engineering unit of a speed setpoint or feedback register."""
 
-    PERCENT = 'percent'   # percent of the motor's rated speed
+    PERCENT = 'percent'   # percent of VelocityScaling.rated_speed_rpm (the profile's 100 %)
     HZ = 'hz'             # output / synchronous frequency
     RPM = 'rpm'           # motor shaft speed
 
@@ -32,6 +33,10 @@ class VelocityScaling:
     invert_direction: bool = False
     rated_speed_rpm: float = 1500.0     # 100 % for percent setpoints
     pole_pairs: int = 2                 # Hz <-> rpm (synchronous speed)
+    #: the two above are the profile's defaults, not the integrator's: a drive whose own
+    #: nameplate makes them otherwise is told at connect (ModbusDrive.configure)
+    rated_from_profile: bool = False
+    pole_pairs_from_profile: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.gear_ratio) and self.gear_ratio > 0):
