@@ -1,6 +1,6 @@
 """Launch the demo: per wheel a simulated drive on its own line and a drive_node.
 
-The demo's velocity profile runs too (run_demo:=true).
+The demo's velocity profile runs too (run_demo:=true); its end ends the launch.
 
     ros2 launch vfd_ros2 demo.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/demo]
         [managed:=true [autostart:=false]]
@@ -16,7 +16,12 @@ turns it into launch actions.
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
+from launch.actions import (
+    DeclareLaunchArgument,
+    OpaqueFunction,
+    SetEnvironmentVariable,
+    Shutdown,
+)
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -43,6 +48,8 @@ def generate_launch_description():
         DeclareLaunchArgument('autostart', default_value='true',
                               description='managed nodes configure and activate at start'),
         OpaqueFunction(function=_nodes),
+        # The profile's end ends the launch (its drives stopped first), as scripts/demo does.
         Node(package='vfd_ros2', executable='demo', arguments=['--attach'], output='screen',
-             emulate_tty=False, condition=IfCondition(LaunchConfiguration('run_demo'))),
+             emulate_tty=False, condition=IfCondition(LaunchConfiguration('run_demo')),
+             on_exit=Shutdown(reason='the demo profile ended')),
     ])

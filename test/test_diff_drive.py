@@ -877,6 +877,24 @@ def test_a_wheel_that_stopped_following_while_idle_is_told_when_motion_is_asked(
     assert set(rig.left.commands[-10:]) == {0.0}
 
 
+def test_a_wheel_in_watchdog_is_told_only_when_it_stays_there(make_rig, capfd):
+    # At a start the drives are in "watchdog" (no command yet) until this node's first
+    # commands reach them: that was a warning at every activation (outside audit). It
+    # still halts both wheels, and one that stays there is told.
+    rig = make_rig()
+    rig.left.state = rig.right.state = 'watchdog'
+    rig.twist = (0.3, 0.0)
+    wait_for(lambda: rig.node.halted, 3.0, 'halted')
+    time.sleep(0.3)
+    rig.left.state = rig.right.state = 'running'      # the first commands arrived
+    rig.wait_commands(3.0, 3.0, what='driving')
+    assert 'stopping both wheels' not in ''.join(capfd.readouterr())
+    rig.right.state = 'watchdog'                       # its commands no longer arrive
+    wait_for(lambda: 'stopping both wheels: right wheel drive is watchdog' in
+             ''.join(capfd.readouterr()), 3.0, 'a lasting watchdog told')
+    assert rig.node.halted
+
+
 def test_a_halt_is_told_once_per_cause_not_once_per_cycle(make_rig, capfd):
     rig = make_rig()
     rig.twist = (0.3, 0.0)

@@ -306,7 +306,7 @@ def test_unknown_fault_code_is_reported_not_crashing(make_harness):
     h.sim.inject_fault(49, 2)
     fault = wait_for(lambda: next((f for f in reversed(h.faults) if f.active), None), 3.0,
                      'fault')
-    assert not fault.known and fault.name == 'unknown fault 49'
+    assert not fault.known and fault.name == 'unknown fault E49.02'
     assert h.trigger('reset_fault').success
 
 

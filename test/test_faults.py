@@ -69,8 +69,8 @@ def test_known_code_without_subcode_table():
 def test_unknown_code(code, subcode):
     info = describe_fault(spec(), code, subcode)
     assert not info.known and info.active
-    assert info.name == f'unknown fault {code}'
     assert info.display == f'E{code:02d}.{subcode:02d}'
+    assert info.name == f'unknown fault {info.display}'
     assert f'fault code {code}' in info.cause and f'sub-code {subcode}' in info.cause
     assert info.remedy == 'see the drive manual'
 

@@ -162,6 +162,36 @@ def test_a_canopen_line_takes_silence_and_faults_too(sim_node):
     assert reply.success, reply.message
 
 
+def test_a_canopen_sim_drive_serves_drivers_in_other_processes_as_socketcand(sim_node):
+    # python-can's virtual interface does not leave the process: a driver started with
+    # its own `ros2 run` heard nothing, with no word why (outside audit). With
+    # socketcand_port the sim serves its channel as a socketcand daemon on loopback.
+    import json
+
+    from vfd_ros2.control.factory import build_controller
+    channel = f'simtest{uuid.uuid4().hex[:8]}'
+    node, _ = sim_node(profile='cia402_velocity', transport='canopen', interface='virtual',
+                       channel=channel, unit_ids=[1], socketcand_port=0)
+    port = node.socketcand.port
+    assert port > 0
+    controller = build_controller({
+        'drive.profile': 'cia402_velocity', 'transport.type': 'canopen',
+        'transport.interface': 'socketcand', 'transport.channel': channel,
+        'transport.can_options': json.dumps({'host': '127.0.0.1', 'port': port,
+                                             'tcp_tune': True}),
+        'transport.unit_id': 1, 'auto_enable': True, 'command_timeout': 0.5})
+    controller.start()
+    try:
+        def running() -> bool:
+            controller.command_velocity(1.0)
+            return controller.state.online and controller.state.state == 'running'
+        wait_for(running, 10.0, 'the drive online and running through the socketcand port')
+        wait_for(lambda: (controller.command_velocity(1.0), node.drives[0].speed_rpm > 5.0)[1],
+                 5.0, 'the twin turning at the command')
+    finally:
+        controller.shutdown()
+
+
 def test_every_parameter_answers_one_get_parameters_call_for_them_all(sim_node, tmp_path):
     """A parameter without a value fails every get_parameters request that names it.
 

@@ -643,9 +643,10 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             if not self.emcy_log.first((emcy.code, emcy.register, bytes(emcy.data)), now):
                 continue
             info = self._describe_emcy(emcy)
-            log.warning('%s EMCY 0x%04X (%s) register 0x%02X data %s: %s %s', self.hardware_id,
-                        emcy.code, emcy.get_desc(), emcy.register, emcy.data.hex(' '),
-                        info.display, info.name)
+            desc = emcy.get_desc()          # (the library's class text; '' for some codes)
+            log.warning('%s EMCY 0x%04X%s register 0x%02X data %s: %s %s', self.hardware_id,
+                        emcy.code, f' ({desc})' if desc else '', emcy.register,
+                        emcy.data.hex(' '), info.display, info.name)
         repeats = self.emcy_log.due(now)
         if repeats:
             log.warning('%s: %d more EMCY frames, already logged since the last error reset',

@@ -37,7 +37,8 @@ def describe_fault(spec: FaultSpec, code: int, subcode: int = 0) -> FaultInfo:
         display = f'{code}.{subcode}'
     entry = spec.table.get(code)
     if entry is None:
-        return FaultInfo(code, subcode, display, f'unknown fault {code}',
+        # (named as displayed: a CiA code 0x7310 read 'unknown fault 29456' beside it)
+        return FaultInfo(code, subcode, display, f'unknown fault {display}',
                          f"fault code {code} (sub-code {subcode}) is not in the profile's "
                          'fault table', 'see the drive manual', known=False)
     detail = entry.subcodes.get(subcode, '')

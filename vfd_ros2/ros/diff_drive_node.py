@@ -130,6 +130,9 @@ LIMITS = ('max_linear_velocity', 'max_angular_velocity', 'max_linear_acceleratio
 #: name; on a topic of several joints the wheel's own comes within a few messages)
 MISSES_TOLD = 20
 
+#: s a wheel stays in "watchdog" (no command yet) before the halt it causes is told
+WATCHDOG_TELL_AFTER = 1.0
+
 #: DriveStatus.state of a drive that does not follow its velocity commands
 NOT_FOLLOWING = frozenset({'offline', 'fault', 'disabled', 'stopped', 'blocked', 'watchdog'})
 
@@ -317,6 +320,7 @@ class DiffDriveNode(Node):
         self.timed_out = True
         self.halted = ''            # why both wheels are held at zero ('' while they follow)
         self._halt_told = ''        # the cause last logged
+        self._halt_since: Time | None = None    # since when a wheel halts both
         self._last_tick: Time | None = None
 
         self.left_pub = self.create_publisher(Float64, values['left_wheel_command_topic'], 10)
@@ -517,7 +521,14 @@ class DiffDriveNode(Node):
         # robot about it at the commanded speed: both wheels are brought to zero
         # (within the acceleration limits) until both follow again.
         halt = self.left.not_following(now) or self.right.not_following(now)
-        if halt and halt != self._halt_told and fresh and any(self.target):
+        if halt and self._halt_since is None:
+            self._halt_since = now
+        # A drive in "watchdog" has had no command: at a start it leaves it on this
+        # node's first ones, so it is told only once it lasts (a warning at every
+        # activation with cmd_vel streaming: outside audit).
+        lasting = not halt.endswith(' is watchdog') or self._halt_since is not None and \
+            (now - self._halt_since).nanoseconds * 1e-9 >= WATCHDOG_TELL_AFTER
+        if halt and halt != self._halt_told and fresh and any(self.target) and lasting:
             # (told when a command asks for motion: a wheel halted while the robot
             # stands is told once something is asked of it)
             self.get_logger().warning(f'stopping both wheels: {halt}')
@@ -525,6 +536,7 @@ class DiffDriveNode(Node):
         self.halted = halt
         if not halt:
             self._halt_told = ''
+            self._halt_since = None
 
         target = self.target if fresh and not halt else (0.0, 0.0)
         linear, angular = self.limiter.step(target[0], target[1], dt)

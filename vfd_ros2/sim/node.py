@@ -4,7 +4,9 @@ Parameters:
   profile            drive profile of the simulated drives
   transport          modbus_rtu (a pseudo-terminal behind ``port``), modbus_tcp
                      (a server on 127.0.0.1:``tcp_port``) or canopen (node ids = unit_ids
-                     on python-can ``interface``/``channel``, default virtual/vcan0)
+                     on python-can ``interface``/``channel``, default virtual/vcan0;
+                     ``socketcand_port`` >= 0 serves that channel to drivers in other
+                     processes as a socketcand daemon on 127.0.0.1, 0 = any free port)
   port               stable path the driver opens (a symlink to the pty)
   unit_ids           slave ids served on the line, e.g. [1, 2]
   baudrate           0 = the profile's factory setting (used for wire time)
@@ -66,6 +68,7 @@ class SimDriveNode(Node):
         super().__init__(node_name, **kwargs)
         #: the parameters ``_apply`` changes at run time (the others: at start-up only)
         self.live_parameters: list[str] = []
+        self.socketcand: Any = None     # canopen with socketcand_port: the daemon it serves
         declare = self._declare
         profile = load_profile(declare('profile', 'boneng_am', 'profile of the simulated drives'))
         transport = declare('transport', 'modbus_rtu',
@@ -116,10 +119,27 @@ class SimDriveNode(Node):
         interface = self._declare('interface', 'virtual', 'canopen: python-can interface')
         channel = self._declare('channel', 'vcan0', 'canopen: CAN channel')
         object_set = self._declare('object_set', '', "canopen: object set ('' = profile's)")
+        socketcand_port = int(self._declare(
+            'socketcand_port', -1, 'canopen: serve the channel to drivers in other processes '
+            "as a socketcand daemon on 127.0.0.1 (bus name = channel): python-can's virtual "
+            'interface does not leave this process; -1 = off, 0 = any free port', -1, 65535))
         self.drives = [SimulatedCanopenDrive(profile, int(unit), object_set, initial)
                        for unit in unit_ids]
         line = SimulatedCanBus(self.drives, channel, interface).start()
-        return line, f'can:{interface}:{channel}'
+        where = f'can:{interface}:{channel}'
+        if socketcand_port >= 0:
+            from .socketcand_server import SocketcandServer
+            try:
+                self.socketcand = SocketcandServer(channel, interface,
+                                                   port=socketcand_port).start()
+            except Exception:
+                line.stop()
+                raise
+            where += (f', served as socketcand on 127.0.0.1:{self.socketcand.port} (a '
+                      'driver: transport.interface socketcand, transport.channel '
+                      f'{channel}, transport.can_options \'{{"host": "127.0.0.1", "port": '
+                      f'{self.socketcand.port}, "tcp_tune": true}}\')')
+        return line, where
 
     def _modbus(self, profile: Any, transport: str, port: str, unit_ids: list, initial: dict,
                 baudrate: int, wire_time: bool, corrupt: float,
@@ -278,6 +298,8 @@ class SimDriveNode(Node):
             self._say(f'line quiet after {waited:.2f} s: closing it')
         for line in self.exit_report():
             self._say(line)
+        if self.socketcand is not None:
+            self.socketcand.stop()
         self.line.stop()
         super().destroy_node()
 
