@@ -1,6 +1,7 @@
 """Launch the demo: per wheel a simulated drive on its own line and a drive_node.
 
-The demo's velocity profile runs too (run_demo:=true); its end ends the launch.
+The demo's velocity profile runs too (run_demo:=true); its end ends the launch (a failed
+demo leaves the drives up).
 
     ros2 launch vfd_ros2 demo.launch.py [run_demo:=false] [directory:=/tmp/vfd_ros2/demo]
         [managed:=true [autostart:=false]]
@@ -18,6 +19,7 @@ turns it into launch actions.
 from launch import LaunchDescription
 from launch.actions import (
     DeclareLaunchArgument,
+    LogInfo,
     OpaqueFunction,
     SetEnvironmentVariable,
     Shutdown,
@@ -36,6 +38,16 @@ def _nodes(context):
             for spec in sim_wheels(directory=value('directory'))]
 
 
+def _after_demo(event, _context):
+    # The profile's end ends the launch (its drives stopped first), as scripts/demo does;
+    # a failed demo leaves the drives up for a look (managed:=true autostart:=false
+    # without run_demo:=false gives up after 20 s).
+    if event.returncode == 0:
+        return [Shutdown(reason='the demo profile ended')]
+    return [LogInfo(msg=f'the demo failed (exit code {event.returncode}): the simulated '
+                        'drives and drive nodes stay up for a look; Ctrl-C ends the launch')]
+
+
 def generate_launch_description():
     return LaunchDescription([
         SetEnvironmentVariable('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'),
@@ -48,8 +60,7 @@ def generate_launch_description():
         DeclareLaunchArgument('autostart', default_value='true',
                               description='managed nodes configure and activate at start'),
         OpaqueFunction(function=_nodes),
-        # The profile's end ends the launch (its drives stopped first), as scripts/demo does.
         Node(package='vfd_ros2', executable='demo', arguments=['--attach'], output='screen',
              emulate_tty=False, condition=IfCondition(LaunchConfiguration('run_demo')),
-             on_exit=Shutdown(reason='the demo profile ended')),
+             on_exit=_after_demo),
     ])

@@ -88,7 +88,8 @@ def _fake_launch_modules(monkeypatch):
     modules = {
         'launch': {'LaunchDescription': lambda actions: list(actions)},
         'launch.actions': {'DeclareLaunchArgument': Action, 'OpaqueFunction': Action,
-                           'SetEnvironmentVariable': Action, 'Shutdown': Action},
+                           'SetEnvironmentVariable': Action, 'Shutdown': Action,
+                           'LogInfo': Action},
         'launch.conditions': {'IfCondition': Action},
         'launch.substitutions': {'LaunchConfiguration': LaunchConfiguration},
         'launch_ros': {},
@@ -124,8 +125,12 @@ def test_demo_launch_file_builds_the_bringup_nodes(monkeypatch):
     demo = [a for a in actions if isinstance(a, Action) and a.kwargs.get('executable') == 'demo']
     assert demo and demo[0].kwargs['arguments'] == ['--attach']
     # The profile's end ends the launch (the processes stayed up until Ctrl-C: outside
-    # audit with the real ros2 launch).
-    assert demo[0].kwargs['on_exit'].kwargs == {'reason': 'the demo profile ended'}
+    # audit with the real ros2 launch); a failed demo leaves them up, saying so.
+    after = demo[0].kwargs['on_exit']
+    [ended] = after(types.SimpleNamespace(returncode=0), None)
+    assert ended.kwargs == {'reason': 'the demo profile ended'}
+    [failed] = after(types.SimpleNamespace(returncode=1), None)
+    assert 'the demo failed (exit code 1)' in failed.kwargs['msg']
     # The demo refuses to run unless DDS stays on this machine: the launch file says so
     # first (on an apt machine nothing else sets it), before any process starts.
     assert actions[0].args == ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -21,7 +21,13 @@ from harness import wait_for
 from vfd_ros2.errors import ParameterError
 from vfd_ros2.sim.canopen_process import CanopenSimProcess
 from vfd_ros2.sim.socketcand_server import SocketcandServer, format_frame, parse_send
-from vfd_ros2.transports.canopen import CanChannel, CanopenTransport, parse_can_options
+from vfd_ros2.transports.canopen import (
+    _RECONNECTS,
+    CanChannel,
+    CanopenTransport,
+    _ThrottleMessage,
+    parse_can_options,
+)
 
 # --- transport.can_options (no I/O) ---------------------------------------------------------
 
@@ -243,7 +249,8 @@ def test_a_drive_goes_online_and_runs_against_drives_in_another_process():
                     client_log.name, logging.WARNING, __file__, 0, text, None, None)))
             assert not passes('Got incomplete message => waiting for more data')
             assert passes('Invalid Frame: < frame 123 >')
-            assert passes("Failed to connect to server: <class 'OSError'> Message: refused")
+            # the reconnect warnings: one a second (test_reconnect_warnings_...)
+            assert _RECONNECTS in client_log.filters
         finally:
             controller.shutdown()
         frames = sim.stop()
@@ -251,6 +258,24 @@ def test_a_drive_goes_online_and_runs_against_drives_in_another_process():
     # what crossed the bridge, seen in the simulator's process: SDO both ways, the RPDO,
     # SYNC, the TPDO and the heartbeats of node 2 and of the host (node 127)
     assert {0x602, 0x582, 0x202, 0x080, 0x182, 0x702, 0x77F} <= cobs, sorted(map(hex, cobs))
+
+
+def test_reconnect_warnings_pass_once_a_second_with_the_count():
+    # python-can's client retries a vanished daemon in a tight loop for 10 s, one
+    # warning each: 184,351 lines in 3 s (outside re-check).
+    throttle = _ThrottleMessage('Failed to connect to server', 1.0)
+
+    def record(text: str) -> logging.LogRecord:
+        return logging.LogRecord('can', logging.WARNING, __file__, 0, text, None, None)
+    first = record('Failed to connect to server: refused')
+    assert throttle.filter(first) and first.msg == 'Failed to connect to server: refused'
+    assert not any(throttle.filter(record('Failed to connect to server: refused'))
+                   for _ in range(1000))
+    assert throttle.filter(record('Invalid Frame: < frame 123 >'))     # others pass
+    throttle._passed_at -= 1.0                                    # noqa: SLF001 - a second on
+    later = record('Failed to connect to server: refused')
+    assert throttle.filter(later)
+    assert later.msg.endswith('(1000 more like it in the last 1 s)')
 
 
 def test_vfd_scan_and_vfd_params_take_the_can_options(tmp_path):

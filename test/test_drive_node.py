@@ -382,7 +382,7 @@ def test_parameter_bad_inputs_change_nothing(make_harness):
         ('C02.02', 9.0): 'how this link reaches the drive',
         ('C02.00', 3.0): 'how this link reaches the drive',
         ('D00.04', 100.0): 'motor.rated_speed_rpm',
-        ('D00.05', 2660.0): 'motor.rated_speed_rpm',      # (the drive derives D00.09 from it)
+        ('D00.05', 2660.0): 'motor.pole_pairs',           # (the drive derives D00.09 from it)
         ('D00.09', 4.0): 'motor.pole_pairs',
         ('C02.06', 1.0): 'the driver writes percent',
     }

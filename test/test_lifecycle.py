@@ -204,6 +204,21 @@ def test_services_of_an_unconfigured_node_answer_at_once_and_never_run_later(man
     assert status.fault_code == 7
 
 
+def test_commands_to_an_inactive_node_are_told_at_any_log_level(managed, capfd):
+    # A zero is a debug line, another value a warning: one call site at two severities
+    # made rclpy raise at debug level, and every command after a zero was an ERROR
+    # "velocity command failed" instead (outside re-check).
+    from rclpy.logging import LoggingSeverity
+    from std_msgs.msg import Float64
+    h = managed(auto_enable=False)
+    h.node.get_logger().set_level(LoggingSeverity.DEBUG)
+    for value in (0.0, 1.0, 0.0, 2.0):
+        h.node._on_velocity(Float64(data=value))      # noqa: SLF001 - the callback alone
+    out = ''.join(capfd.readouterr())
+    assert 'velocity command 1.0 ignored: the node is not active' in out
+    assert 'velocity command 0.0 ignored' in out and 'failed' not in out, out
+
+
 def test_configure_fails_while_the_drive_is_silent_and_errors_go_to_error_processing(managed):
     h = managed(auto_enable=True, action_timeout=0.5)
     node = f'{h.namespace}/drive'

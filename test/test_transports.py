@@ -11,7 +11,7 @@ import pytest
 from unit_support import MemoryTransport, shipped_profile
 from vfd_ros2.drives import modbus as modbus_drive
 from vfd_ros2.drives.modbus import ModbusDrive
-from vfd_ros2.errors import ProtocolException, TransportLoadError
+from vfd_ros2.errors import CommTimeout, ProtocolException, TransportLoadError
 from vfd_ros2.protocol.scaling import VelocityScaling
 from vfd_ros2.transports import (
     BUILTIN_TRANSPORTS,
@@ -262,3 +262,45 @@ def test_drive_writes_over_the_plugin_transport(plugin):
     drive.apply(half_rated, run=False)                     # idle: zero setpoint, stop
     assert transport.registers[0xE721] == 0
     assert transport.registers[0xE720] == profile.control.values['stop']
+
+
+class NameplateSilence(MemoryTransport):
+    """A drive that does not answer (or refuses) the reads of some registers."""
+
+    def __init__(self, silent: dict[int, Exception]) -> None:
+        super().__init__()
+        self.silent = silent
+
+    def read_registers(self, unit: int, address: int, count: int) -> list[int]:
+        for register in range(address, address + count):
+            if register in self.silent:
+                raise self.silent[register]
+        return super().read_registers(unit, address, count)
+
+
+@pytest.mark.parametrize('failure', [CommTimeout('no reply'), ProtocolException(2, 'refused')])
+def test_a_nameplate_the_drive_does_not_give_never_keeps_it_offline(failure):
+    # The nameplate check is advisory: an unanswered read of D00.04 failed the whole
+    # connect, for ever, on a bus where the others came online (outside audit).
+    from vfd_ros2.drives.base import HostLossProtection
+    profile = shipped_profile('boneng_am')
+    transport = NameplateSilence({0x5004: failure})
+    drive = ModbusDrive(profile, transport, 1, VelocityScaling(
+        gear_ratio=10.0, rated_speed_rpm=1500.0, rated_from_profile=True,
+        pole_pairs_from_profile=True))
+    drive.configure(HostLossProtection(), apply_commissioning=False)
+    assert drive.nameplate_note == ''
+    # Pole pairs unreadable: the node's own are taken, so a 60 Hz drive is still told.
+    transport = NameplateSilence({0x5009: failure})
+    transport.registers[0x5004] = 6000                      # D00.04 = 60.00 Hz
+    drive = ModbusDrive(profile, transport, 1, VelocityScaling(
+        gear_ratio=10.0, rated_speed_rpm=1500.0, rated_from_profile=True,
+        pole_pairs_from_profile=True))
+    drive.configure(HostLossProtection(), apply_commissioning=False)
+    assert "the drive's nameplate (D00.04 60) makes a 100 % setpoint 1800 rpm" in \
+        drive.nameplate_note
+    # What the node was told by its integrator is not second-guessed.
+    drive = ModbusDrive(profile, transport, 1, VelocityScaling(
+        gear_ratio=10.0, rated_speed_rpm=1800.0, pole_pairs_from_profile=True))
+    drive.configure(HostLossProtection(), apply_commissioning=False)
+    assert drive.nameplate_note == ''

@@ -158,7 +158,7 @@ def settings_the_driver_depends_on(drive: Drive) -> dict[str, str]:
         if velocity.rated_frequency else (velocity.rated_speed, '', '')
     for code, unit, setting in ((percent_of[0], SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
                                 (percent_of[1], SpeedUnit.PERCENT, 'motor.pole_pairs'),
-                                (percent_of[2], SpeedUnit.PERCENT, 'motor.rated_speed_rpm'),
+                                (percent_of[2], SpeedUnit.PERCENT, 'motor.pole_pairs'),
                                 (velocity.pole_pairs, SpeedUnit.HZ, 'motor.pole_pairs')):
         if code and unit in units:
             found[code] = (f"the node's velocity scaling uses it ({setting}): written here, the "

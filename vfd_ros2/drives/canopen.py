@@ -35,6 +35,7 @@ from ..errors import (
     ProfileError,
     ProtocolException,
     TransportError,
+    VfdError,
 )
 from ..profiles import (
     NO_FAULT,
@@ -485,7 +486,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             return protection
         try:
             option = parameter.from_raw(self._read_raw(parameter))
-        except (ParameterError, ProtocolException) as exc:
+        except VfdError as exc:     # refused, or no SDO answer: advisory, never offline
             # (a refused commissioning write of it is in problems already)
             note = (f'0x6007 (the reaction to a lost master) unreadable ({exc}): the '
                     "maker's reaction, not verified")

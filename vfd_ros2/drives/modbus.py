@@ -237,6 +237,7 @@ class ModbusDrive(DriveOnLink):
         total += 2 * exchange(*self._write_requests(self._command))
         settings = len(self.profile.commissioning) + (self.profile.comm_timeout is not None)
         total += settings * (exchange(8, reply_size(3, 2)) + exchange(8, reply_size(6)))
+        total += len(self._nameplate_codes()) * exchange(8, reply_size(3, 2))
         return total + self.cycle_seconds()
 
     def action_seconds(self) -> float:
@@ -294,10 +295,12 @@ class ModbusDrive(DriveOnLink):
     def _nameplate_note(self) -> str:
         """Say where the drive's own nameplate scales speed otherwise than the node ('' if not).
 
-        Only for what the node took from the profile's defaults: a drive set up for
-        another motor (60 Hz, four poles) makes another 100 % or another rpm per Hz,
-        and the wheel would run faster or slower than commanded with nothing said
-        (outside audit). A nameplate the drive refuses to read is not compared.
+        Only where the node took its 100 % or pole pairs from the profile's defaults: a
+        drive set up for another motor (60 Hz, four poles) makes another 100 % or
+        another rpm per Hz, and the wheel would run faster or slower than commanded
+        with nothing said (outside audit). Advisory: a value the drive refuses or does
+        not answer is not compared (pole pairs: the node's are taken), and never keeps
+        the drive offline.
         """
         velocity, scaling = self.profile.velocity, self.scaling
         units = {velocity.setpoint_unit, velocity.feedback_unit}
@@ -305,32 +308,49 @@ class ModbusDrive(DriveOnLink):
 
         def value_of(code: str) -> float:
             if code not in read:
-                read[code] = self.read_value(self.profile.parameter(code)).value
-            return read[code]
+                try:
+                    read[code] = self.read_value(self.profile.parameter(code)).value
+                except VfdError as exc:     # refused, or no answer: not compared
+                    log.debug('%s: nameplate %s not read: %s', self.hardware_id, code, exc)
+                    read[code] = math.nan
+            value = read[code]
+            if code == velocity.pole_pairs and not value > 0:
+                return float(scaling.pole_pairs)    # (unreadable: the node's own)
+            return value if value > 0 else 0.0
         notes = []
-        try:
-            if SpeedUnit.PERCENT in units and scaling.rated_from_profile and (
-                    velocity.rated_frequency or velocity.rated_speed):
-                theirs = velocity.percent_base_rpm(value_of, 0.0)
-                ours = scaling.rated_speed_rpm
-                if theirs > 0 and not math.isclose(theirs, ours, rel_tol=NAMEPLATE_TOLERANCE):
-                    shown = ', '.join(f'{code} {value:g}' for code, value in read.items())
-                    notes.append(
-                        f"the drive's nameplate ({shown}) makes a 100 % setpoint {theirs:g} "
-                        f"rpm, this node's (the profile's default) {ours:g} rpm: the wheel "
-                        f'would run at {theirs / ours:.0%} of the commanded speed; set '
-                        f'motor.rated_speed_rpm: {theirs:g}')
-            if SpeedUnit.HZ in units and scaling.pole_pairs_from_profile and velocity.pole_pairs:
-                pairs = value_of(velocity.pole_pairs)
-                if pairs > 0 and pairs != scaling.pole_pairs:
-                    notes.append(
-                        f"the drive's nameplate has {pairs:g} pole pairs ({velocity.pole_pairs}), "
-                        f"this node (the profile's default) {scaling.pole_pairs}: the wheel "
-                        f'would run at {scaling.pole_pairs / pairs:.0%} of the commanded '
-                        f'speed; set motor.pole_pairs: {pairs:g}')
-        except (ParameterError, ProtocolException) as exc:
-            log.debug('%s: nameplate not compared: %s', self.hardware_id, exc)
+        if SpeedUnit.PERCENT in units and scaling.rated_from_profile and (
+                velocity.rated_frequency or velocity.rated_speed):
+            theirs = velocity.percent_base_rpm(value_of, 0.0)
+            ours = scaling.rated_speed_rpm
+            if theirs > 0 and not math.isclose(theirs, ours, rel_tol=NAMEPLATE_TOLERANCE):
+                shown = ', '.join(f'{code} {value:g}' for code, value in read.items()
+                                  if math.isfinite(value))
+                notes.append(
+                    f"the drive's nameplate ({shown}) makes a 100 % setpoint {theirs:g} rpm, "
+                    f'this node scales 100 % as {ours:g} rpm: the wheel would run at '
+                    f'{theirs / ours:.0%} of the commanded speed; set motor.rated_speed_rpm: '
+                    f'{theirs:g}')
+        if SpeedUnit.HZ in units and scaling.pole_pairs_from_profile and velocity.pole_pairs:
+            pairs = value_of(velocity.pole_pairs)
+            if pairs > 0 and pairs != scaling.pole_pairs:
+                notes.append(
+                    f"the drive's nameplate has {pairs:g} pole pairs ({velocity.pole_pairs}), "
+                    f'this node scales with {scaling.pole_pairs}: the wheel would run at '
+                    f'{scaling.pole_pairs / pairs:.0%} of the commanded speed; set '
+                    f'motor.pole_pairs: {pairs:g}')
         return '; '.join(notes)
+
+    def _nameplate_codes(self) -> list[str]:
+        """Return the parameters _nameplate_note reads (for the wire time of a connect)."""
+        velocity, scaling = self.profile.velocity, self.scaling
+        units = {velocity.setpoint_unit, velocity.feedback_unit}
+        codes = []
+        if SpeedUnit.PERCENT in units and scaling.rated_from_profile:
+            codes += [velocity.rated_frequency, velocity.pole_pairs] \
+                if velocity.rated_frequency else [velocity.rated_speed]
+        if SpeedUnit.HZ in units and scaling.pole_pairs_from_profile:
+            codes.append(velocity.pole_pairs)
+        return list(dict.fromkeys(code for code in codes if code))
 
     def refresh_host_loss(self, protection: HostLossProtection) -> None:
         """Write a new comm-loss timeout while online (the bus's real timing outgrew the plan).

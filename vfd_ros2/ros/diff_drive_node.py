@@ -321,6 +321,7 @@ class DiffDriveNode(Node):
         self.halted = ''            # why both wheels are held at zero ('' while they follow)
         self._halt_told = ''        # the cause last logged
         self._halt_since: Time | None = None    # since when a wheel halts both
+        self._watchdog_ended: Time | None = None   # when a wheel last left "watchdog"
         self._last_tick: Time | None = None
 
         self.left_pub = self.create_publisher(Float64, values['left_wheel_command_topic'], 10)
@@ -525,14 +526,19 @@ class DiffDriveNode(Node):
             self._halt_since = now
         # A drive in "watchdog" has had no command: at a start it leaves it on this
         # node's first ones, so it is told only once it lasts (a warning at every
-        # activation with cmd_vel streaming: outside audit).
-        lasting = not halt.endswith(' is watchdog') or self._halt_since is not None and \
+        # activation with cmd_vel streaming: outside audit), or comes back within
+        # WATCHDOG_TELL_AFTER x 10 of the last (a wheel whose commands keep lapsing).
+        recent = self._watchdog_ended is not None and \
+            (now - self._watchdog_ended).nanoseconds * 1e-9 < 10 * WATCHDOG_TELL_AFTER
+        lasting = not halt.endswith(' is watchdog') or recent or \
             (now - self._halt_since).nanoseconds * 1e-9 >= WATCHDOG_TELL_AFTER
         if halt and halt != self._halt_told and fresh and any(self.target) and lasting:
             # (told when a command asks for motion: a wheel halted while the robot
             # stands is told once something is asked of it)
             self.get_logger().warning(f'stopping both wheels: {halt}')
             self._halt_told = halt
+        if self.halted.endswith(' is watchdog') and not halt.endswith(' is watchdog'):
+            self._watchdog_ended = now
         self.halted = halt
         if not halt:
             self._halt_told = ''

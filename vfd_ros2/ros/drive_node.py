@@ -237,11 +237,14 @@ class DriveNode(Node):
             if not self.motion_allowed:
                 # A zero asks for nothing an inactive node does not do: a diff_drive's
                 # stream of zeros while a managed bus waits to be configured is not a
-                # warning every 2 s per wheel (outside audit).
-                log = self.get_logger().warning if msg.data != 0.0 else \
-                    self.get_logger().debug
-                log(f'velocity command {msg.data} ignored: the node is not active '
-                    '(lifecycle: configure and activate it)', throttle_duration_sec=2.0)
+                # warning every 2 s per wheel (outside audit). (Two calls: rclpy refuses
+                # one call site logging at two severities.)
+                text = (f'velocity command {msg.data} ignored: the node is not active '
+                        '(lifecycle: configure and activate it)')
+                if msg.data != 0.0:
+                    self.get_logger().warning(text, throttle_duration_sec=2.0)
+                else:
+                    self.get_logger().debug(text, throttle_duration_sec=2.0)
                 return
             outcome = self.controller.command_velocity(msg.data)
             if outcome is CommandOutcome.REJECTED:

@@ -351,12 +351,43 @@ class _DropMessage(logging.Filter):
         return not str(record.msg).startswith(self.prefix)
 
 
+class _ThrottleMessage(logging.Filter):
+    """Pass a library's record whose message starts with ``prefix`` once per ``period`` s.
+
+    The one that passes says how many were dropped since; other records pass.
+    """
+
+    def __init__(self, prefix: str, period: float) -> None:
+        super().__init__()
+        self.prefix, self.period = prefix, period
+        self._passed_at = -math.inf
+        self._dropped = 0
+        self._lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith(self.prefix):
+            return True
+        now = time.monotonic()
+        with self._lock:
+            if now - self._passed_at < self.period:
+                self._dropped += 1
+                return False
+            dropped, self._dropped, self._passed_at = self._dropped, 0, now
+        if dropped:
+            record.msg = f'{record.msg} ({dropped} more like it in the last {self.period:g} s)'
+        return True
+
+
 #: python-can socketcand's warning for a TCP read that ends inside a frame. Ordinary on
 #: a stream (the client keeps the rest for the next read), it came for most reads at a
 #: few thousand frames/s: a flood on bus_node's console, written from the receive
-#: thread. The client's other warnings (a frame it cannot parse, a refused connection)
-#: pass.
+#: thread. The client's other warnings (a frame it cannot parse) pass.
 _PARTIAL_READS = _DropMessage('Got incomplete message')
+
+#: ... and its warning for each failed reconnect: once the daemon is gone it retries in a
+#: tight loop for 10 s (184,351 lines in 3 s when a simulated drive's process ended
+#: first: outside re-check). One a second says it, with the count.
+_RECONNECTS = _ThrottleMessage('Failed to connect to server', 1.0)
 
 #: the canopen library's ERROR line for each SDO transfer this host aborts. Every abort
 #: comes from a call of this transport (a timeout, an endless upload), which reports it
@@ -438,8 +469,9 @@ class CanChannel:
                 logging.getLogger('canopen.sdo.client').addFilter(_CLIENT_ABORTS)
                 kwargs: dict[str, Any] = {**extra, 'interface': interface, 'channel': channel}
                 if interface == 'socketcand':
-                    logging.getLogger('can.interfaces.socketcand.socketcand').addFilter(
-                        _PARTIAL_READS)
+                    client_log = logging.getLogger('can.interfaces.socketcand.socketcand')
+                    client_log.addFilter(_PARTIAL_READS)
+                    client_log.addFilter(_RECONNECTS)
                 if bitrate:
                     kwargs['bitrate'] = int(bitrate)
                 try:
