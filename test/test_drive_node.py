@@ -62,6 +62,26 @@ def test_velocity_command_reaches_wire_and_motor(make_harness):
     assert h.node.diagnostic_status().level == DiagnosticStatus.OK
 
 
+def test_a_running_drive_that_misses_its_command_is_told_until_it_follows(make_harness):
+    # A velocity limit written to 0 stalled a wheel that said "running" with OK
+    # diagnostics while its robot veered (outside audit). Here a ramp of 100 s to the
+    # 100 %: far off the command past stop_timeout, a WARN naming both; cleared once the
+    # drive follows (its ramp set back).
+    h = make_harness(sim_initial={'B04.02': 100.0},
+                     node_parameters={'auto_enable': True, 'stop_timeout': 1.0})
+    h.stream(2.0)
+    h.wait_status(lambda s: s.running, 5.0, 'running')
+    told = 'against a command of 2 rad/s for over 1 s (stop_timeout)'
+    diagnostic = wait_for(lambda: (d := h.node.diagnostic_status()).level ==
+                          DiagnosticStatus.WARN and told in d.message and d, 5.0, 'told')
+    assert 'a speed or torque limit in the drive' in diagnostic.message
+    assert h.status.running and h.status.measured_velocity < 1.6
+    h.sim.write(h.profile.parameter('B04.02').address, [5])        # 0.5 s ramp
+    h.wait_status(lambda s: abs(s.measured_velocity - 2.0) < 0.05, 5.0, 'following')
+    wait_for(lambda: h.node.diagnostic_status().level == DiagnosticStatus.OK, 3.0,
+             'the WARN cleared')
+
+
 @pytest.mark.parametrize('configured, told', [({}, True),
                                                ({'motor.rated_speed_rpm': 1800.0}, False)])
 def test_a_drive_whose_nameplate_scales_speed_otherwise_is_told(make_harness, configured,

@@ -68,6 +68,9 @@ STANDSTILL_MOTOR_RPM = 5.0
 #: stop_timeout windows more given to a drive held idle that is ramping down towards
 #: zero within them (see _check_not_stopping)
 RAMP_WINDOWS = 2
+#: share of the command a running drive's measured speed may miss it by (beyond the
+#: standstill band) before, lasting stop_timeout, it is told (see _check_following)
+FOLLOWING_SHARE = 0.2
 
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
@@ -220,6 +223,9 @@ class DriveController:
         self._ramp_windows = 0          # stop_timeout windows given to a ramp so far
         self._running_idle_counted = False  # that episode is in unexpected_starts already
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
+        self._not_following = ''        # why a running drive misses its command, once clear
+        self._off_command_since: float | None = None     # since when it misses it
+        self._off_command = 0.0         # the command it misses
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
         self._near_trips = 0            # gaps in a row near the comm-loss timeout
@@ -639,6 +645,7 @@ class DriveController:
                     self._check_addressing(gap)
                 self._check_fault()
                 self._check_unexpected_motion()
+                self._check_following()
                 self._actions.advance()
                 self.link.cycle_ok()
             except TransportError as exc:
@@ -810,6 +817,7 @@ class DriveController:
         self._last_running = False
         self._running_idle_since, self._running_idle_counted = None, False
         self._not_stopping = ''         # (nothing was written while it was offline)
+        self._off_command_since, self._not_following = None, ''
         self._polled_at, self._near_trips, self._raise_refused = None, 0, 0.0
         self._check_comm_fault = True
         # Online from here, but nothing is known of the drive's state until a status
@@ -1071,6 +1079,37 @@ class DriveController:
                               'command again')
             log.warning('%s: %s', self.drive.hardware_id, self._lost_run)
 
+    def _check_following(self) -> None:
+        """Tell a drive that runs but does not reach its command, for as long as it does not.
+
+        Running, its measured speed off the command by more than the standstill band
+        and FOLLOWING_SHARE of the command, for stop_timeout with the command unchanged
+        (which covers a ramp): a speed or torque limit in the drive, a blocked wheel.
+        A velocity limit written to 0 stalled a wheel that said "running" with OK
+        diagnostics while its robot veered (outside audit). A WARN, cleared once it
+        follows; nothing is stopped: the wheel obeys what the drive allows.
+        """
+        reading = self._reading
+        measured = reading.measured_velocity
+        with self._lock:
+            commanded = self._velocity
+        tolerance = max(self.services.standstill, FOLLOWING_SHARE * abs(commanded))
+        if not (reading.flags.get('running', False) and self._run_written and
+                math.isfinite(measured)) or abs(measured - commanded) <= tolerance:
+            self._off_command_since, self._not_following = None, ''
+            return
+        now = self._clock()
+        if self._off_command_since is None or commanded != self._off_command:
+            self._off_command_since, self._off_command = now, commanded
+            return
+        if not self._not_following and \
+                now - self._off_command_since > self.config.stop_timeout:
+            self._not_following = (
+                f'running at {measured:.3g} rad/s against a command of {commanded:g} rad/s '
+                f'for over {self.config.stop_timeout:g} s (stop_timeout): a speed or torque '
+                'limit in the drive (a velocity limit parameter), or a blocked wheel')
+            log.warning('%s: %s', self.drive.hardware_id, self._not_following)
+
     # --- snapshot ---------------------------------------------------------------
 
     @property
@@ -1147,6 +1186,7 @@ class DriveController:
             link_notes=self.drive.transport.link_notes + self.loop_notes + self._nameplate_notes,
             read_at=read_at,
             not_stopping=not_stopping,
+            not_following=self._not_following if running else '',
             command_gaps=gaps,
             command_gap=gap if read_at - gap_at < COMMAND_GAP_MEMORY else '',
         )

@@ -95,6 +95,7 @@ class DriveState(NamedTuple):
                                            # nameplate that scales speed otherwise)
     read_at: float = math.nan       # the controller's clock when it was taken (after a poll)
     not_stopping: str = ''          # held idle, the drive has run on past stop_timeout: why
+    not_following: str = ''         # running, the drive has missed its command that long: why
     command_gaps: int = 0           # commands that came soon after a watchdog stop
     command_gap: str = ''           # the last of them, described, while recent
 

@@ -235,6 +235,8 @@ def _warnings(state: DriveState) -> list[str]:
         warnings.append(f'no drive-side host-loss protection: {protection.note}')
     elif protection.weaker_than_requested:
         warnings.append(f'host-loss protection weaker than requested: {protection.describe()}')
+    if state.not_following:
+        warnings.append(state.not_following)
     if state.unavailable:
         warnings.append(f'the drive refuses: {"; ".join(state.unavailable)}')
     warnings.extend(state.link_notes)
