@@ -373,6 +373,17 @@ def test_hd2_function_codes_over_sdo(start_segment, make_wheel):
     reply = hd2.call(SetDriveParameter, 'set_drive_parameter',
                      SetDriveParameter.Request(name='P00.10', value=1e9, persistent=False))
     assert not reply.success and 'above the maximum' in reply.message
+    # The Modbus card's communication registers are no function codes: the window's
+    # "illegal data address" read like a Modbus reply (outside audit); said up front.
+    got = hd2.call(GetDriveParameter, 'get_drive_parameter',
+                   GetDriveParameter.Request(name='status_word_1'))
+    assert not got.success and 'is not a function code' in got.message and \
+        'not reachable over EtherCAT' in got.message, got.message
+    # The card's own comm-loss timeout: 0.0 ("invalid") took that protection away, and
+    # was written (outside audit).
+    reply = hd2.call(SetDriveParameter, 'set_drive_parameter',
+                     SetDriveParameter.Request(name='P16.18', value=0.0, persistent=False))
+    assert not reply.success and "card's own comm-loss timeout" in reply.message, reply.message
 
 
 def test_a_short_frame_loss_is_ridden_through(ros_context, start_segment, veth_link,

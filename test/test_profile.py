@@ -639,7 +639,9 @@ def test_objects_are_found_as_index_and_subindex_too():
     profile = load_profile('cia402_velocity')
     for key in ('0x6083', '0x6083:00', '0X6083:0x00', ' 0x6083:0 ', 'profile_acceleration'):
         assert profile.parameter(key).code == '0x6083', key
-    with pytest.raises(ParameterError, match=r'an object as 0xINDEX or 0xINDEX:SUBINDEX'):
+    with pytest.raises(ParameterError, match=r"objects as 0xINDEX or 0xINDEX:SUBINDEX.*"
+                                             r"0x6083 unquoted in YAML is the number 24707: "
+                                             r"quote it, '0x6083'"):
         profile.parameter('24707')
     with pytest.raises(ParameterError, match='unknown parameter'):
         profile.parameter('0x6083:01')          # no such subindex

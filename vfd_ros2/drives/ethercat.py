@@ -409,6 +409,15 @@ class EthercatDrive(DriveOnLink, ObjectDictionaryParameters):
         window = self.spec.function_codes
         if self.spec.parameter_access is ParameterAccess.FUNCTION_CODES and window is not None \
                 and parameter.address >= 0:
+            low, high = window.addresses
+            if not low <= parameter.address <= high:
+                # (the drive answered "illegal data address", read as a Modbus reply:
+                # outside audit)
+                raise ParameterError(
+                    f'{parameter.code} ({parameter.description}) at 0x{parameter.address:04X} '
+                    f'is not a function code: the EtherCAT card reaches function codes only '
+                    f'(0x{low:04X}-0x{high:04X} through 0x{window.read:04X}-'
+                    f'0x{window.write_response:04X}); not reachable over EtherCAT')
             if parameter.register_count != 1:
                 raise ParameterError(f'{parameter.code} is two registers wide: the function-code '
                                      'window carries 16 bits')

@@ -294,7 +294,8 @@ def _ethercat(item: Mapping[str, Any], parameters: Mapping[str, Parameter]) -> E
             read=int(window['read']), read_response=int(window['read_response']),
             write=int(window['write']), write_response=int(window['write_response']),
             success=int(window.get('success', 1)),
-            errors={int(k): str(v) for k, v in (window.get('errors') or {}).items()})
+            errors={int(k): str(v) for k, v in (window.get('errors') or {}).items()},
+            addresses=tuple(int(a) for a in window.get('addresses', (0, 0xFFFF))))
         if window else None,
         emcy_fault=EmcyFault(item.get('emcy_fault', 'error_code')),
         emcy_faults=tuple(EmcyMapping(int(m['error_code']), int(m['fault']),

@@ -522,6 +522,8 @@ class FunctionCodeWindow:
     write_response: int
     success: int = 0x0001
     errors: Mapping[int, str] = field(default_factory=dict)
+    #: the addresses it reaches (low, high): function codes, not another card's registers
+    addresses: tuple[int, int] = (0x0000, 0xFFFF)
 
 
 @dataclass(frozen=True)
@@ -715,11 +717,17 @@ class Profile:
                 if (parameter.index, parameter.subindex) == (index, subindex):
                     return parameter
         objects = any(parameter.index is not None for parameter in self.parameters.values())
+        hint = ''
+        if stripped.isdigit() and any(parameter.index == int(stripped)
+                                      for parameter in self.parameters.values()):
+            # ros2 service call's YAML reads an unquoted 0x6083 as the number 24707
+            hint = (f'; 0x{int(stripped):04X} unquoted in YAML is the number {stripped}: '
+                    f"quote it, '0x{int(stripped):04X}'")
         raise ParameterError(
             f'unknown parameter {quote(key)} for profile {self.name} '
             '(use a function code such as those in the manual'
-            + (', an object as 0xINDEX or 0xINDEX:SUBINDEX' if objects else '')
-            + ', or a readable name)')
+            + (", one of the table's objects as 0xINDEX or 0xINDEX:SUBINDEX" if objects else '')
+            + f', or a readable name{hint})')
 
     def parameter_at(self, address: int) -> Parameter | None:
         code = self._by_address.get(address)
