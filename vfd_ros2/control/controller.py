@@ -71,6 +71,8 @@ RAMP_WINDOWS = 2
 #: share of the command a running drive's measured speed may miss it by (beyond the
 #: standstill band) before, lasting stop_timeout, it is told (see _check_following)
 FOLLOWING_SHARE = 0.2
+#: share of the motor's nominal speed a frequency-commanded motor may slip under load
+SLIP_SHARE = 0.12
 
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
@@ -224,8 +226,8 @@ class DriveController:
         self._running_idle_counted = False  # that episode is in unexpected_starts already
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._not_following = ''        # why a running drive misses its command, once clear
-        self._off_command_since: float | None = None     # since when it misses it
-        self._off_command = 0.0         # the command it misses
+        self._off_command_since: float | None = None     # last progress towards it
+        self._off_command = 0.0         # how far off it was then (rad/s)
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
         self._near_trips = 0            # gaps in a row near the comm-loss timeout
@@ -1082,33 +1084,57 @@ class DriveController:
     def _check_following(self) -> None:
         """Tell a drive that runs but does not reach its command, for as long as it does not.
 
-        Running, its measured speed off the command by more than the standstill band
-        and FOLLOWING_SHARE of the command, for stop_timeout with the command unchanged
-        (which covers a ramp): a speed or torque limit in the drive, a blocked wheel.
-        A velocity limit written to 0 stalled a wheel that said "running" with OK
-        diagnostics while its robot veered (outside audit). A WARN, cleared once it
+        Running, its measured speed off the command by more than the following band
+        (``_following_band``), and no nearer by half that band for stop_timeout: a
+        speed or torque limit in the drive, a blocked wheel, a mode that ignores the
+        speed setpoint. A velocity limit written to 0 stalled a wheel that said
+        "running" with OK diagnostics while its robot veered (outside audit). Timed
+        from the last progress towards the command, not from the command's last
+        change: a ramp longer than stop_timeout progresses, and a stalled wheel under a
+        command that varies a little does not (re-check). A WARN, cleared once it
         follows; nothing is stopped: the wheel obeys what the drive allows.
         """
         reading = self._reading
         measured = reading.measured_velocity
         with self._lock:
             commanded = self._velocity
-        tolerance = max(self.services.standstill, FOLLOWING_SHARE * abs(commanded))
+        band = self._following_band(commanded)
+        error = abs(measured - commanded)
         if not (reading.flags.get('running', False) and self._run_written and
-                math.isfinite(measured)) or abs(measured - commanded) <= tolerance:
+                math.isfinite(measured)) or error <= band:
             self._off_command_since, self._not_following = None, ''
             return
         now = self._clock()
-        if self._off_command_since is None or commanded != self._off_command:
-            self._off_command_since, self._off_command = now, commanded
+        if self._off_command_since is None or error < self._off_command - band / 2:
+            self._off_command_since, self._off_command = now, error    # (progress)
+            self._not_following = ''
             return
-        if not self._not_following and \
-                now - self._off_command_since > self.config.stop_timeout:
+        if now - self._off_command_since > self.config.stop_timeout:
+            told = bool(self._not_following)
             self._not_following = (
-                f'running at {measured:.3g} rad/s against a command of {commanded:g} rad/s '
-                f'for over {self.config.stop_timeout:g} s (stop_timeout): a speed or torque '
-                'limit in the drive (a velocity limit parameter), or a blocked wheel')
-            log.warning('%s: %s', self.drive.hardware_id, self._not_following)
+                f'running at {measured:.3g} rad/s against a command of {commanded:g} rad/s, '
+                f'no nearer for over {self.config.stop_timeout:g} s (stop_timeout): a speed '
+                'or torque limit in the drive (a velocity limit parameter), a blocked wheel, '
+                'or a mode that does not follow the speed setpoint')
+            if not told:
+                log.warning('%s: %s', self.drive.hardware_id, self._not_following)
+
+    def _following_band(self, commanded: float) -> float:
+        """Return how far (rad/s) a running drive may miss ``commanded`` as following it.
+
+        The standstill band, FOLLOWING_SHARE of the command, and where the setpoint is
+        a frequency (the drive does not control the shaft speed) the slip a loaded
+        induction motor has: SLIP_SHARE of its nominal speed (the AM's 1330 rpm rated
+        at 1500 synchronous is 11 %: a loaded wheel crawling at 10 % of its command
+        speed is not stalled).
+        """
+        band = max(self.services.standstill, FOLLOWING_SHARE * abs(commanded))
+        scaling = getattr(self.drive, 'scaling', None)
+        velocity = self.drive.profile.velocity
+        if scaling is not None and (velocity.setpoint_unit is SpeedUnit.HZ or (
+                velocity.setpoint_unit is SpeedUnit.PERCENT and velocity.rated_frequency)):
+            band += abs(scaling.motor_rpm_to_output(SLIP_SHARE * scaling.rated_speed_rpm))
+        return band
 
     # --- snapshot ---------------------------------------------------------------
 
