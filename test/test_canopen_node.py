@@ -662,6 +662,27 @@ def test_a_stop_is_verified_at_standstill_not_when_the_drive_drops_its_run_state
     assert sim.state is State.SWITCHED_ON and _motor_rpm_to_wheel(sim.speed_rpm) > 1.0
 
 
+def test_a_reversal_in_the_middle_of_a_long_ramp_is_not_taken_for_a_stall(make_can_harness):
+    # A speed-controlled drive (no slip allowance) reversed at +2 rad/s towards -5 on a
+    # 300 rpm/s ramp needs 2.2 s, more than stop_timeout: timed from the error's last
+    # shrinking, it was told as a limit in the drive (re-check). The measured speed
+    # moves towards the command all the way: not told.
+    h = make_can_harness(node_parameters={'auto_enable': True, 'stop_timeout': 1.0})
+    wheel = h.wheels[1]
+    _set(wheel, 'profile_acceleration', 300.0)
+    _set(wheel, 'profile_deceleration', 300.0)
+    wheel.stream(5.0)
+    wheel.wait_status(lambda s: s.measured_velocity > 2.0, 6.0, 'half way up to +5 rad/s')
+    wheel.stream(-5.0)
+    levels = []
+    end = time.monotonic() + 6.0
+    while time.monotonic() < end and abs(wheel.status.measured_velocity + 5.0) >= 0.1:
+        levels.append(wheel.node.diagnostic_status().level)
+        time.sleep(0.05)
+    assert abs(wheel.status.measured_velocity + 5.0) < 0.1, 'never reached -5 rad/s'
+    assert len(levels) > 20 and set(levels) == {DiagnosticStatus.OK}, levels
+
+
 def test_a_ramp_slower_than_stop_timeout_is_told_not_counted_as_a_start_from_elsewhere(
         make_can_harness, caplog):
     """A CiA 402 drive stays in operation enabled through its ramp (0x605C = 1).

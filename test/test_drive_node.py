@@ -63,16 +63,19 @@ def test_velocity_command_reaches_wire_and_motor(make_harness):
     assert h.node.diagnostic_status().level == DiagnosticStatus.OK
 
 
-def test_a_running_drive_that_misses_its_command_is_told_until_it_follows(make_harness):
+@pytest.mark.parametrize('command, cap_rpm', [(5.0, 50.0), (2.0, 0.0)])
+def test_a_running_drive_that_misses_its_command_is_told_until_it_follows(make_harness,
+                                                                           command, cap_rpm):
     # A velocity limit written to 0 stalled a wheel that said "running" with OK
-    # diagnostics while its robot veered (outside audit). Here the twin caps its speed at
-    # 50 motor rpm (a limit in the drive) under a command that varies a little, as a
-    # planner's does (the first version restarted its timer at every change: re-check):
-    # a WARN naming both; cleared once the drive follows.
+    # diagnostics while its robot veered (outside audit). Here the twin caps its speed
+    # (a limit in the drive) under a command that varies a little, as a planner's does
+    # (the first version restarted its timer at every change), and a full stall at a
+    # slow AGV speed, which a slip allowance hid (re-checks): a WARN naming both;
+    # cleared once the drive follows.
     h = make_harness(node_parameters={'auto_enable': True, 'stop_timeout': 1.0})
     target = h.sim._target_rpm                                  # noqa: SLF001
-    h.sim._target_rpm = lambda *args: max(min(target(*args), 50.0), -50.0)  # noqa: SLF001
-    commands = iter(5.0 + 0.01 * (i % 3) for i in range(10 ** 6))
+    h.sim._target_rpm = lambda *args: max(min(target(*args), cap_rpm), -cap_rpm)  # noqa: SLF001
+    commands = iter(command + 0.01 * (i % 3) for i in range(10 ** 6))
     streaming = threading.Event()
     streaming.set()
 
@@ -87,9 +90,9 @@ def test_a_running_drive_that_misses_its_command_is_told_until_it_follows(make_h
         diagnostic = wait_for(lambda: (d := h.node.diagnostic_status()).level ==
                               DiagnosticStatus.WARN and told in d.message and d, 6.0, 'told')
         assert 'a speed or torque limit in the drive' in diagnostic.message
-        assert h.status.running and h.status.measured_velocity < 1.0
+        assert h.status.running and h.status.measured_velocity < 0.6
         h.sim._target_rpm = target                              # noqa: SLF001
-        h.wait_status(lambda s: abs(s.measured_velocity - 5.0) < 0.1, 5.0, 'following')
+        h.wait_status(lambda s: abs(s.measured_velocity - command) < 0.1, 5.0, 'following')
         wait_for(lambda: h.node.diagnostic_status().level == DiagnosticStatus.OK, 3.0,
                  'the WARN cleared')
     finally:
@@ -97,12 +100,13 @@ def test_a_running_drive_that_misses_its_command_is_told_until_it_follows(make_h
 
 
 def test_a_ramp_longer_than_stop_timeout_is_not_taken_for_a_stall(make_harness):
-    # Reversing +5 -> -5 rad/s on a 3 s ramp takes longer than stop_timeout 1 s; the
-    # first version told it as a limit in the drive (re-check). It progresses: not told.
+    # Reversing towards -5 rad/s in the middle of a ramp up to +5, on a 3 s ramp, takes
+    # longer than stop_timeout 1 s; the first versions told it as a limit in the drive
+    # (re-checks). The measured speed progresses towards the command: not told.
     h = make_harness(sim_initial={'B04.02': 3.0, 'B04.03': 3.0},
                      node_parameters={'auto_enable': True, 'stop_timeout': 1.0})
     h.stream(5.0)
-    h.wait_status(lambda s: abs(s.measured_velocity - 5.0) < 0.1, 8.0, 'at +5 rad/s')
+    h.wait_status(lambda s: s.measured_velocity > 2.0, 8.0, 'half way up to +5 rad/s')
     h.stream(-5.0)
     levels = []
     end = time.monotonic() + 6.0

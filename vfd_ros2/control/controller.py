@@ -227,7 +227,7 @@ class DriveController:
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._not_following = ''        # why a running drive misses its command, once clear
         self._off_command_since: float | None = None     # last progress towards it
-        self._off_command = 0.0         # how far off it was then (rad/s)
+        self._off_command = 0.0         # the measured speed then (rad/s)
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
         self._near_trips = 0            # gaps in a row near the comm-loss timeout
@@ -1084,29 +1084,32 @@ class DriveController:
     def _check_following(self) -> None:
         """Tell a drive that runs but does not reach its command, for as long as it does not.
 
-        Running, its measured speed off the command by more than the following band
-        (``_following_band``), and no nearer by half that band for stop_timeout: a
-        speed or torque limit in the drive, a blocked wheel, a mode that ignores the
-        speed setpoint. A velocity limit written to 0 stalled a wheel that said
-        "running" with OK diagnostics while its robot veered (outside audit). Timed
-        from the last progress towards the command, not from the command's last
-        change: a ramp longer than stop_timeout progresses, and a stalled wheel under a
-        command that varies a little does not (re-check). A WARN, cleared once it
-        follows; nothing is stopped: the wheel obeys what the drive allows.
+        Running and off its command (beyond ``_following_band``, or not turning, or
+        turning the wrong way), with the measured speed no nearer the command by the
+        standstill band for stop_timeout: a speed or torque limit in the drive, a
+        blocked wheel, a mode that ignores the speed setpoint. A velocity limit written
+        to 0 stalled a wheel that said "running" with OK diagnostics while its robot
+        veered (outside audit). Progress is the measured speed moving towards the
+        command, not the command moving: a ramp longer than stop_timeout, or reversed
+        in the middle, progresses; a stalled wheel under a command that varies or
+        falls towards it does not (re-checks). A WARN, cleared once it follows or
+        progresses; nothing is stopped: the wheel obeys what the drive allows.
         """
         reading = self._reading
         measured = reading.measured_velocity
         with self._lock:
             commanded = self._velocity
-        band = self._following_band(commanded)
-        error = abs(measured - commanded)
-        if not (reading.flags.get('running', False) and self._run_written and
-                math.isfinite(measured)) or error <= band:
+        still = self.services.standstill
+        off = math.isfinite(measured) and (
+            abs(measured - commanded) > self._following_band(commanded) or
+            abs(commanded) > 2 * still and (abs(measured) <= still or measured * commanded < 0))
+        if not (reading.flags.get('running', False) and self._run_written and off):
             self._off_command_since, self._not_following = None, ''
             return
         now = self._clock()
-        if self._off_command_since is None or error < self._off_command - band / 2:
-            self._off_command_since, self._off_command = now, error    # (progress)
+        towards = (measured - self._off_command) * math.copysign(1.0, commanded - measured)
+        if self._off_command_since is None or towards >= still:
+            self._off_command_since, self._off_command = now, measured     # (progress)
             self._not_following = ''
             return
         if now - self._off_command_since > self.config.stop_timeout:
@@ -1122,18 +1125,19 @@ class DriveController:
     def _following_band(self, commanded: float) -> float:
         """Return how far (rad/s) a running drive may miss ``commanded`` as following it.
 
-        The standstill band, FOLLOWING_SHARE of the command, and where the setpoint is
-        a frequency (the drive does not control the shaft speed) the slip a loaded
-        induction motor has: SLIP_SHARE of its nominal speed (the AM's 1330 rpm rated
-        at 1500 synchronous is 11 %: a loaded wheel crawling at 10 % of its command
-        speed is not stalled).
+        The standstill band and FOLLOWING_SHARE of the command; where the setpoint is
+        a frequency (the drive does not control the shaft speed), up to SLIP_SHARE of
+        the motor's nominal speed more for a loaded induction motor's slip (the AM's
+        1330 rpm rated at 1500 synchronous is 11 %), but never more than half the
+        command: a wheel that does not turn is off its command at any speed.
         """
         band = max(self.services.standstill, FOLLOWING_SHARE * abs(commanded))
         scaling = getattr(self.drive, 'scaling', None)
         velocity = self.drive.profile.velocity
         if scaling is not None and (velocity.setpoint_unit is SpeedUnit.HZ or (
                 velocity.setpoint_unit is SpeedUnit.PERCENT and velocity.rated_frequency)):
-            band += abs(scaling.motor_rpm_to_output(SLIP_SHARE * scaling.rated_speed_rpm))
+            slip = abs(scaling.motor_rpm_to_output(SLIP_SHARE * scaling.rated_speed_rpm))
+            band = max(band, min(band + slip, 0.5 * abs(commanded)))
         return band
 
     # --- snapshot ---------------------------------------------------------------
