@@ -265,3 +265,43 @@ def test_standstill_is_five_motor_rpm_or_the_at_speed_tolerance_not_a_share_of_t
                             VelocityScaling(gear_ratio=10.0, invert_direction=True))
         assert geared == pytest.approx(0.1)                     # at_speed_tolerance
     assert standstill(ControllerConfig(), None) == pytest.approx(0.1)   # a plugin's drive
+
+
+def _follow(controller: DriveController, clock: FakeClock, command: float,
+            measured: float, seconds: float, period: float = 0.02) -> list[str]:
+    """Run _check_following over ``seconds`` of polls; return what it said at each."""
+    from vfd_ros2.drives.base import Reading
+    said = []
+    for _ in range(round(seconds / period)):
+        clock.now += period
+        controller._velocity = command() if callable(command) else command  # noqa: SLF001
+        value = measured() if callable(measured) else measured
+        controller._reading = Reading(flags={'running': True},             # noqa: SLF001
+                                      measured_velocity=value)
+        controller._check_following()                                     # noqa: SLF001
+        said.append(controller._not_following)                            # noqa: SLF001
+    return said
+
+
+def test_a_noisy_stall_under_a_command_of_alternating_sign_is_told(clock):
+    # A reading's noise (a motor at rest read as 1-3 rpm) counted as progress each time
+    # the command changed sign, and the stall was never told (outside re-check).
+    import random
+    controller, _ = make_controller(clock, max_velocity=5.0, stop_timeout=1.0)
+    controller._run_written = True                                         # noqa: SLF001
+    noise = random.Random(7)
+    polls = iter(range(10 ** 6))
+    said = _follow(controller, clock, lambda: 3.0 if next(polls) // 25 % 2 else -3.0,
+                   lambda: noise.gauss(0.0, 0.1), 20.0)
+    first = next(i for i, text in enumerate(said) if text)
+    assert first * 0.02 < 1.5, first
+    assert sum(1 for text in said[first:] if not text) == 0       # and stays told
+    # A healthy reversal through zero at a slow ramp is no stall, noise or not.
+    controller, _ = make_controller(clock, max_velocity=5.0, stop_timeout=1.0)
+    controller._run_written = True                                         # noqa: SLF001
+    speed = [3.0]
+
+    def ramping() -> float:
+        speed[0] = max(speed[0] - 0.6 * 0.02, -3.0)      # 10 s from +3 to -3
+        return speed[0] + noise.gauss(0.0, 0.03)
+    assert not any(_follow(controller, clock, -3.0, ramping, 12.0))

@@ -73,6 +73,8 @@ RAMP_WINDOWS = 2
 FOLLOWING_SHARE = 0.2
 #: share of the motor's nominal speed a frequency-commanded motor may slip under load
 SLIP_SHARE = 0.12
+#: s over which the measured speed is smoothed when judging progress towards a command
+FOLLOWING_SMOOTHING = 0.3
 
 #: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
@@ -227,7 +229,10 @@ class DriveController:
         self._not_stopping = ''         # why a drive held idle still runs, once it is clear
         self._not_following = ''        # why a running drive misses its command, once clear
         self._off_command_since: float | None = None     # last progress towards it
-        self._off_command = 0.0         # the measured speed then (rad/s)
+        self._off_command = 0.0         # the (smoothed) measured speed then (rad/s)
+        self._off_smoothed = 0.0        # the measured speed smoothed since it is off
+        self._off_polled = 0.0          # when that was last updated
+        self._off_direction = 0.0       # the sign of command - speed
         self._unexpected_starts = 0
         self._polled_at: float | None = None   # when the last poll of this connection began
         self._near_trips = 0            # gaps in a row near the comm-loss timeout
@@ -1085,9 +1090,10 @@ class DriveController:
         """Tell a drive that runs but does not reach its command, for as long as it does not.
 
         Running and off its command (beyond ``_following_band``, or not turning, or
-        turning the wrong way), with the measured speed no nearer the command by the
-        standstill band for stop_timeout: a speed or torque limit in the drive, a
-        blocked wheel, a mode that ignores the speed setpoint. A velocity limit written
+        turning the wrong way), with the measured speed (smoothed) no nearer the
+        command by twice the standstill band for stop_timeout: a speed or torque limit
+        in the drive, a command below its start frequency, a blocked wheel, a mode that
+        ignores the speed setpoint. A velocity limit written
         to 0 stalled a wheel that said "running" with OK diagnostics while its robot
         veered (outside audit). Progress is the measured speed moving towards the
         command, not the command moving: a ramp longer than stop_timeout, or reversed
@@ -1107,9 +1113,23 @@ class DriveController:
             self._off_command_since, self._not_following = None, ''
             return
         now = self._clock()
-        towards = (measured - self._off_command) * math.copysign(1.0, commanded - measured)
-        if self._off_command_since is None or towards >= still:
-            self._off_command_since, self._off_command = now, measured     # (progress)
+        direction = math.copysign(1.0, commanded - measured)
+        if self._off_command_since is None:
+            self._off_command_since, self._off_direction = now, direction
+            self._off_command = self._off_smoothed = measured
+            self._off_polled = now
+            return
+        # The speed smoothed over FOLLOWING_SMOOTHING s: a reading's noise (a motor at
+        # rest read as 1-3 rpm) is no progress (re-check: a noisy stall under a command
+        # of alternating sign was never told).
+        weight = 1.0 - math.exp(-(now - self._off_polled) / FOLLOWING_SMOOTHING)
+        self._off_smoothed += weight * (measured - self._off_smoothed)
+        self._off_polled = now
+        if direction != self._off_direction:
+            # The command crossed the speed: aimed anew from here, which is no progress.
+            self._off_direction, self._off_command = direction, self._off_smoothed
+        elif (self._off_smoothed - self._off_command) * direction >= 2 * still:
+            self._off_command_since, self._off_command = now, self._off_smoothed  # (progress)
             self._not_following = ''
             return
         if now - self._off_command_since > self.config.stop_timeout:
@@ -1117,8 +1137,9 @@ class DriveController:
             self._not_following = (
                 f'running at {measured:.3g} rad/s against a command of {commanded:g} rad/s, '
                 f'no nearer for over {self.config.stop_timeout:g} s (stop_timeout): a speed '
-                'or torque limit in the drive (a velocity limit parameter), a blocked wheel, '
-                'or a mode that does not follow the speed setpoint')
+                'or torque limit in the drive (a velocity limit parameter), a command below '
+                'its start or minimum frequency, a blocked wheel, or a mode that does not '
+                'follow the speed setpoint')
             if not told:
                 log.warning('%s: %s', self.drive.hardware_id, self._not_following)
 
