@@ -43,6 +43,20 @@ def wait_for(condition: Callable[[], Any], timeout: float = 5.0, what: str = 'co
         time.sleep(period)
 
 
+def diagnostic_levels_until_at(client: Any, velocity: float, timeout: float) -> list[int]:
+    """Sample ``client.node``'s /diagnostics level every 50 ms until it measures ``velocity``.
+
+    Within 0.1 rad/s; fails if the drive does not get there within ``timeout``.
+    """
+    levels = []
+    deadline = time.monotonic() + timeout
+    while abs(client.status.measured_velocity - velocity) >= 0.1:
+        assert time.monotonic() < deadline, f'never reached {velocity} rad/s'
+        levels.append(client.node.diagnostic_status().level)
+        time.sleep(0.05)
+    return levels
+
+
 class DriveClient:
     """The tester's side of one drive node: its topics and services."""
 

@@ -13,7 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 
 from can_harness import can_harness_factory  # noqa: F401 - the make_can_harness fixture
-from harness import wait_for
+from harness import diagnostic_levels_until_at, wait_for
 from vfd_ros2.profiles import load_profile
 from vfd_ros2.protocol.cia402 import State
 from vfd_ros2.protocol.repeats import RepeatSummary
@@ -674,12 +674,7 @@ def test_a_reversal_in_the_middle_of_a_long_ramp_is_not_taken_for_a_stall(make_c
     wheel.stream(5.0)
     wheel.wait_status(lambda s: s.measured_velocity > 2.0, 6.0, 'half way up to +5 rad/s')
     wheel.stream(-5.0)
-    levels = []
-    end = time.monotonic() + 6.0
-    while time.monotonic() < end and abs(wheel.status.measured_velocity + 5.0) >= 0.1:
-        levels.append(wheel.node.diagnostic_status().level)
-        time.sleep(0.05)
-    assert abs(wheel.status.measured_velocity + 5.0) < 0.1, 'never reached -5 rad/s'
+    levels = diagnostic_levels_until_at(wheel, -5.0, 6.0)
     assert len(levels) > 20 and set(levels) == {DiagnosticStatus.OK}, levels
 
 

@@ -12,7 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from pymodbus.framer import FramerRTU
 from sensor_msgs.msg import JointState
 
-from harness import wait_for
+from harness import diagnostic_levels_until_at, wait_for
 from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
@@ -108,12 +108,7 @@ def test_a_ramp_longer_than_stop_timeout_is_not_taken_for_a_stall(make_harness):
     h.stream(5.0)
     h.wait_status(lambda s: s.measured_velocity > 2.0, 8.0, 'half way up to +5 rad/s')
     h.stream(-5.0)
-    levels = []
-    end = time.monotonic() + 6.0
-    while time.monotonic() < end and abs(h.status.measured_velocity + 5.0) >= 0.1:
-        levels.append(h.node.diagnostic_status().level)
-        time.sleep(0.05)
-    assert abs(h.status.measured_velocity + 5.0) < 0.1, 'never reached -5 rad/s'
+    levels = diagnostic_levels_until_at(h, -5.0, 6.0)
     assert len(levels) > 20 and set(levels) == {DiagnosticStatus.OK}, levels
 
 
