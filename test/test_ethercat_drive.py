@@ -413,10 +413,7 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
     with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
         left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
-
-        def both_at(velocity: float) -> bool:
-            return all_at((left, right), velocity)
-        wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
+        wait_for(lambda: all_at((left, right), 1.0), 10.0, 'both at 1 rad/s')
         sim.unplug(1)                                     # the cable into the second slave
         wait_for(lambda: (left.command_velocity(1.0), not right.state.online)[1], 3.0,
                  'right offline')
@@ -429,7 +426,7 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         assert not right.state.running and right.state.run_state != 6, right.state
         assert sim.drive(1)['velocity_rpm'] == 0.0 or sim.drive(1)['state'] != \
             'OPERATION_ENABLED', sim.drive(1)
-        wait_for(lambda: both_at(1.0), 8.0, 'both moving again on fresh commands')
+        wait_for(lambda: all_at((left, right), 1.0), 8.0, 'both moving again on fresh commands')
         # powered off and on: the slave comes back with the ESC's default watchdog and its
         # default PDO mapping and mode; the transport writes its set-up and watchdog again
         left_reconnects = left.state.reconnects
@@ -443,7 +440,7 @@ def test_bus_slave_unplugged_the_other_keeps_running(ros_context, start_segment,
         assert sim.drive(1)['mode'] == 9, sim.drive(1)    # csv written again at PRE-OP
         # by the supervisor, in place: the left wheel never went offline meanwhile
         assert left.state.online and left.state.reconnects == left_reconnects, left.state
-        wait_for(lambda: both_at(1.0), 8.0, 'both moving after the power cycle')
+        wait_for(lambda: all_at((left, right), 1.0), 8.0, 'both moving after the power cycle')
 
 
 def test_a_slave_that_refuses_its_set_up_after_a_power_cycle_stays_in_pre_op_and_says_why(
@@ -458,10 +455,7 @@ def test_a_slave_that_refuses_its_set_up_after_a_power_cycle_stays_in_pre_op_and
     sim = start_segment([IMO_HD2_EC_TX508, IMO_HD2_EC_TX508])
     with bus_node_on_segment(ros_context, veth_link, tmp_path, ('imo_hd2', 'imo_hd2')) as bus:
         left, right = bus.bus.controllers['left'], bus.bus.controllers['right']
-
-        def both_at(velocity: float) -> bool:
-            return all_at((left, right), velocity)
-        wait_for(lambda: both_at(1.0), 10.0, 'both at 1 rad/s')
+        wait_for(lambda: all_at((left, right), 1.0), 10.0, 'both at 1 rad/s')
         sim.call(0, 'abort_writes', 0x6060, 0x06090030)
         with caplog.at_level(logging.WARNING):
             sim.power_cycle(0)
@@ -481,7 +475,7 @@ def test_a_slave_that_refuses_its_set_up_after_a_power_cycle_stays_in_pre_op_and
         assert len(told) == 1, told
         assert '0x06090030' in left.state.stop_reason, left.state.stop_reason
         sim.call(0, 'abort_writes', 0x6060, 0)
-        wait_for(lambda: both_at(1.0), 10.0, 'both moving once the set-up is taken')
+        wait_for(lambda: all_at((left, right), 1.0), 10.0, 'both moving once the set-up is taken')
         assert sim.drive(0)['mode'] == 9, sim.drive(0)
 
 
