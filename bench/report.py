@@ -305,7 +305,11 @@ loopback TCP, DDS on localhost. Theoretical maximum = (request + reply bytes) ×
 time + 2 × t3.5 per transaction (t3.5 = 3.5 characters, 1.75 ms above 19200 baud),
 summed over the frames actually exchanged between two setpoint writes of drive 1 (`frames
 seen`) and, as a cross-check, over the profile's planned cycle (`profile`). The drive's
-own response delay is 0. Figures compare only within one run on one machine.
+own response delay is 0. Figures compare only within one run on one machine. Since
+2026-11-27 22:00 the runs are on a new machine of the same kind (2 CPUs, the same Python,
+pymodbus and ROS wheels), which runs the same code cheaper (section 5's previous design:
+8.2 against 10.1 % of a core for one drive; the I/O floor 0.9 % on both); the earlier
+figures quoted below are from the machine before.
 
 {table}
 
@@ -384,7 +388,8 @@ BOUNDS = """### Targets and what bounds them
   19.84 and 19.56 ms at 19200): with fewer reads per cycle the bench's commands come faster
   (37/s, 0.9 x the planned cycle rate, was 32/s); alternated pairs at both rates that
   morning gave 6.87-6.95 ms at 32/s and 6.92-7.22 ms at 37/s; the full runs at 02:20 and
-  02:47 (0.05 and 0.2 %) 7.02 and 6.95 ms at 115200, 19.21 and 19.66 ms at 19200. Shorter
+  02:47 (0.05 and 0.2 %) 7.02 and 6.95 ms at 115200, 19.21 and 19.66 ms at 19200; the full
+  run of 22:16 on the new machine (0 %) 6.62 and 19.25 ms, met at both. Shorter
   status reads lower
   the worst case (profile `every:` / `max_read_registers`); Modbus TCP has no such
   serialisation.
@@ -393,7 +398,9 @@ BOUNDS = """### Targets and what bounds them
   steal); 0 at normal priority and 10 at priority 50 in the full run of 2026-11-26 (0.08
   %), 16 and 19 in the CANopen re-run right after it (0.39 %); in the full runs of 2026-11-27
   11 and 9 at 00:36 (0.24 %), 14 and 1 at 02:20 (0.05 %), 4 and 0 at 02:47 (0.2 %), 3 and 0 at
-  09:06 (0.01 %, the table); runs with more host steal miss a few dozen. The misses
+  09:06 (0.01 %); on the new machine 0 and 6 in the full run of 22:16 (0 %, the
+  table), 1 and 0 in the CANopen re-run right after it; runs with more host steal miss a
+  few dozen. The misses
   come with the host's steal: four more 60 s runs at priority 50 on 2026-11-26 gave 0, 0
   and 0 missed with 1-11 ticks (10 ms each) of steal during the run, and 18 with 25 ticks;
   putting the channel's receive thread (the library's notifier) at SCHED_FIFO too,
@@ -420,10 +427,22 @@ BOUNDS = """### Targets and what bounds them
   gaps come in clusters of a few hundred ms, as when the whole VM is descheduled. 8 drives
   at 500 Hz: neither process kept up here until 2026-11-27 (drives timed out and
   reconnected: `connections`); in the full run of 09:06, 495.8 cycles/s with 125 missed
-  over 30 s and no reconnect. On a real 1 Mbit/s bus 8 drives x 3 frames x 500 Hz plus
-  SYNC would exceed the bus's capacity anyway (`load % 1M`).
+  over 30 s and no reconnect; on the new machine 500.0 cycles/s and 0 missed in the
+  full run of 22:16 and in the re-run after it. On a real 1 Mbit/s bus 8 drives x 3 frames
+  x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
-  drive_node) — four drives met: 2.5 % in the full run of 2026-11-27 09:06 (0.01 % steal),
+  drive_node) — met in every run on the new machine: the full run of 2026-11-27
+  22:16 (the tables above, 0 % steal) 1.7 % per drive for four and 4.1 % for a drive_node,
+  two more runs of section 5 right after it 1.8 and 1.6 %, 4.1 and 4.4 %, and three runs of
+  the drive_node case before it 3.2, 3.6 and 4.2 %. The code is the one measured before;
+  the machine is new and runs it cheaper (above). On the machine before, a drive_node
+  was at the limit, met in most runs on a quiet host and not on a busy one (below), and a
+  robot's computer may be either: `status_rate` is the lever an integrator has (section 5's
+  row at 1 Hz: 3.1-3.4 % here). With the kept status messages (2026-11-27 afternoon, below):
+  section 5 re-measured at 13:31 (then the tables) 2.7 % and 5.2 %; four runs of the two
+  cases before it 2.1-2.5 % and 4.2-4.7 %; three interleaved pairs of a drive_node with and
+  without the kept messages 4.6, 5.1, 4.6 % against 5.1, 5.5, 4.9 %; earlier that afternoon,
+  on a busier host, 5.7-6.4 %. Before: 2.5 % in the full run of 2026-11-27 09:06 (0.01 % steal),
   2.4-2.6 % in three runs of section 5 before it; a drive_node at the limit: 5.6 % in the
   full run, 4.8, 4.8 and 5.2 % in those three runs (met in two of four), and 5.3-6.1 % in
   seven runs later that morning (four drives: 2.6-3.0 %), with the safety checks added
@@ -464,7 +483,15 @@ BOUNDS = """### Targets and what bounds them
     3.73-4.13 % per drive against 3.81-4.09 % before, which the runs cannot tell apart (a
     drive_node: 7.44-7.95 against 7.30-7.45 %, a busier hour). The safety checks added after
     the hostile-slave audit of 2026-11-27 (a lost run command, a refused command write, the
-    units that answered instead) cost 75 of them: 8170.
+    units that answered instead) cost 75 of them: 8170. Since the afternoon of 2026-11-27
+    a node keeps its `~/status` and `joint_states` messages and sets only the fields whose
+    source changed since the last poll (`StatusMessage` in `ros/messages.py`; a new
+    `DriveStatus` sets each of its 41 fields twice): as the first thing after 50 ms asleep
+    74 instead of 205 µs for the status and 85 instead of 130 µs for the joint state
+    (in-process, medians of 40). In three interleaved pairs a drive_node's executor thread
+    took 2.0-2.2 % of a core against 2.2-2.5 %, and the process 5.8-6.4 % against
+    6.0-6.9 % (a busier hour than the morning's); later, on a quiet host, 1.7-2.1 % against
+    2.0-2.3 % and 4.6-5.1 % against 4.9-5.5 %: 0.3-0.5 points in each of three pairs.
   - *Where it goes.* The control loops name their OS thread (`vfd bus ...`), so the table
     splits the process. The control thread costs ~2.2-2.5 % of a core per drive with four
     drives and 3.4-4.2 % for one; the rows "the same I/O alone" (the same frames to the
@@ -501,7 +528,8 @@ BOUNDS = """### Targets and what bounds them
     as the manual allows (the AM reads at most 5 registers and no undocumented gaps, and
     the run and fault state and the speed are read every cycle) and bought little. An
     integrator short of CPU has `status_rate`: at 1 Hz a drive_node took 4.9-6.0 % on
-    2026-11-26, 5.2 % in the full run of 2026-11-27 02:47, 4.1 % in that of 09:06.
+    2026-11-26, 5.2 % in the full run of 2026-11-27 02:47, 4.1 % in that of 09:06 (3.1 %
+    in that of 22:16, on the new machine).
 - **A fleet: 32 drives on one 115200 line (≥ 90 % of the wire's limit, ≤ 50 % of a
   core) — CPU met; the wire's limit met only at the bus's `realtime_priority: 50` on a quiet
   host (91.5 % in the re-runs of 2026-11-23 night and 2026-11-24; 89.3-89.6 % at normal
@@ -509,7 +537,8 @@ BOUNDS = """### Targets and what bounds them
   2026-11-26 met it at both priorities (90.3 and 91.5 %), and so did the full run of
   2026-11-27 00:36 (91.1 and 93.2 %); those at 02:20 and 02:47 gave 90.0 and 90.5 %, 89.0
   and 91.8 %, and that of 09:06 (replies unpacked from the frame, above) 94.5 and 95.2 %
-  at 10-11 % of a core (was ~19 %).** Before the executor change
+  at 10-11 % of a core (was ~19 %); that of 22:16 on the new machine 95.0 and 95.9 %
+  at 8.6-8.8 %, all 32 online 11 s after start.** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
@@ -546,7 +575,7 @@ BOUNDS = """### Targets and what bounds them
   work: p50 jitter is ~0.05 ms, p99 0.2-2.4 ms, max 1.5-15 ms in the run of 2026-11-23
   evening. Lost frames are frames that did not come back within the receive timeout (0.8 ×
   the cycle) because the simulator was descheduled. What would move it:
-  `transport.realtime_priority` style SCHED_FIFO for the process-data thread
-  (`SegmentSettings.realtime_priority`, `bench/ethercat_cycle.py --rt`), an isolated core,
+  SCHED_FIFO for the process-data thread (`transport.realtime_priority`, not used by the
+  bench's rows; `bench/ethercat_cycle.py --rt`), an isolated core,
   and a real ESC (hardware answers in microseconds, not a Python process).
 """
