@@ -369,6 +369,39 @@ def test_a_drive_the_link_loses_that_still_hears_gets_a_stop_at_once(make_can_ha
     wheel.stop_stream()
 
 
+def test_a_node_that_goes_to_nmt_stopped_by_itself_is_stopped_and_taken_back(
+        make_can_harness):
+    """The node enters STOPPED while running: it takes neither SDO nor PDOs (CiA 301).
+
+    The stop as the link closed went over SDO and was ignored, so it ran on, and every
+    reconnect failed on its first SDO read until the node was reset by hand (outside
+    audit). The driver now tells it PRE-OPERATIONAL before any SDO: stopped at once,
+    reconfigured, and running again only on the commands that come after. (0x6007 = 0
+    and no host-loss protection: the drive itself does not stop, as the audit's did not.)
+    """
+    h = make_can_harness(sim_initial={'0x6007': 0},
+                         node_parameters={'auto_enable': True, 'drive_comm_timeout': 0.0,
+                                          'apply_commissioning': False,
+                                          'reconnect_period': 0.5})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.stream(2.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 2.0) < 0.05, 6.0,
+                      'at 2 rad/s')
+    wheel.stop_stream()
+    with sim.lock:
+        sim.node.nmt.state = 'STOPPED'
+    status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline: node stopped')
+    assert 'NMT state STOPPED' in status.stop_reason, status.stop_reason
+    wait_for(lambda: sim.state is not State.OPERATION_ENABLED, 1.0, 'the stop heard')
+    status = wheel.wait_status(lambda s: s.online, 5.0, 'taken back without a restart')
+    assert status.reconnects >= 1 and not status.running
+    wait_for(lambda: sim.speed_rpm == 0.0, 3.0, 'at rest, no command since')
+    wheel.stream(1.0)
+    wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
+                      'running on the commands after it')
+    wheel.stop_stream()
+
+
 def test_tpdos_of_the_wrong_length_are_named_not_taken_for_silence(make_can_harness, caplog):
     """TPDO1 keeps coming, three bytes short of its mapping: the reason says so."""
     caplog.set_level('WARNING')

@@ -547,7 +547,11 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         The RPDO carries the control word every cycle, so ``reassert`` needs nothing more.
         """
         if not self._configured:
-            # Connect: before the PDOs exist, zero the setpoint and idle over SDO.
+            # Connect, or a stop as the link is lost: zero the setpoint and idle over SDO,
+            # once the node is told to take SDO. A node in NMT STOPPED (by itself, or its
+            # own comm-loss reaction) ignores SDO and PDOs: it ran on, and every reconnect
+            # failed on its first SDO read, until the node was reset (outside audit).
+            self.transport.nmt(self.unit_id, 'PRE-OPERATIONAL')
             if self.cia402:
                 self._values[self._status_role] = self._read(self.objects.statusword)
                 self._update_state()

@@ -563,13 +563,17 @@ class SimulatedCanopenDrive:
         network.add_node(self.node)
         network.unsubscribe(self.node.sdo.rx_cobid, self.node.sdo.on_request)
         network.unsubscribe(0, self.node.nmt.on_command)
-        network.subscribe(self.node.sdo.rx_cobid, self._gate(self.node.sdo.on_request))
+        network.subscribe(self.node.sdo.rx_cobid, self._gate(self._on_sdo_request))
         network.subscribe(0, self._gate(self._on_nmt))
         for number in range(self.spec.rpdos):
             network.subscribe(0x200 + 0x100 * number + self.node_id, self._on_rpdo)
         network.subscribe(SYNC_COB_ID, self._on_sync)
         self.node.nmt.state = 'PRE-OPERATIONAL'
         network.send_message(0x700 + self.node_id, bytes((0,)))      # boot-up
+
+    def _on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if self.node.nmt.state != 'STOPPED':        # (CiA 301: no SDO while stopped)
+            self.node.sdo.on_request(can_id, data, timestamp)
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if self.ignores_nmt_start and data[:1] == b'\x01':
