@@ -229,6 +229,30 @@ def test_a_refused_setpoint_write_never_keeps_the_stop_from_the_drive(make_harne
     assert not [r for r in caplog.records if 'told to run' in r.getMessage()]
 
 
+def test_a_running_drive_that_refuses_a_new_setpoint_is_idled_not_left_on_the_old_one(
+        make_harness):
+    """A refused change of speed leaves the motor on the old one: it is idled instead.
+
+    It ran on forwards for as long as the refusal lasted under a command of -1 rad/s
+    (outside audit). The same setpoint refused again (the last one it took) keeps it
+    running, as the test above shows; once writes are taken, the commands drive it.
+    """
+    h = make_harness(node_parameters={'auto_enable': True, 'action_timeout': 0.5})
+    h.stream(1.0)
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.02, 5.0,
+                  'running at 1 rad/s')
+    h.sim.refuse_writes(['P07.33'])
+    h.stream(-1.0)
+    wait_for(lambda: not h.sim.run_requested, 2.0, 'idled: the new setpoint was refused')
+    status = h.wait_status(lambda s: not s.running and s.online, 5.0, 'stopped, online')
+    assert any('command write refused' in u for u in status.unavailable), status.unavailable
+    assert status.measured_velocity >= -0.01          # never ran the other way
+    h.sim.refuse_writes([])
+    h.wait_status(lambda s: s.running and abs(s.measured_velocity + 1.0) < 0.02, 6.0,
+                  'running at the command once writes are taken')
+    h.stop_stream()
+
+
 def test_a_drive_that_loses_its_run_command_is_reported_and_not_restarted_behind_it(
         make_harness):
     """A drive that stops by itself while told to run is reported, not restarted.

@@ -755,9 +755,10 @@ class DriveController:
         try:
             self.drive.apply(velocity, run, self.intent.idle_action, reassert=reassert)
         except (ProtocolException, TransportError) as exc:
-            if not run and getattr(self.drive, 'asserted_command', None) == \
-                    self.intent.idle_action:
-                self._run_written = False    # the stop went out, the zero setpoint did not
+            if getattr(self.drive, 'asserted_command', None) == self.intent.idle_action:
+                # the stop went out, the zero setpoint did not; or a running drive that
+                # refused its new setpoint was idled (ModbusDrive.apply)
+                self._run_written = False
             if isinstance(exc, TransportError):
                 raise
             # The drive answered but refused: not a link failure, and not to be lost in

@@ -58,6 +58,9 @@ REFUSAL_RETRY = 5.0
 #: (above the 0.1 % of a setpoint step and a nameplate's rounding)
 NAMEPLATE_TOLERANCE = 0.01
 
+#: the commands that make a drive run (a profile's command values by action name)
+RUN_ACTIONS = ('run', 'run_reverse')
+
 log = logging.getLogger(__name__)
 
 
@@ -469,7 +472,7 @@ class ModbusDrive(DriveOnLink):
         native = self.scaling.to_native(velocity, spec.setpoint_unit)
         action = 'run'
         if spec.direction is DirectionMode.COMMAND:
-            action = 'run_reverse' if native < 0 else 'run'
+            action = 'run_reverse' if native < 0 else 'run'     # (RUN_ACTIONS)
             native = abs(native)
         p = self._setpoint
         low = p.minimum if p.minimum is not None else -math.inf
@@ -527,15 +530,32 @@ class ModbusDrive(DriveOnLink):
         if not run:
             self._apply_idle(raw, idle_action, reassert)
             return
-        self.write_raw(self._setpoint, raw)   # (a refused setpoint never (re)starts it)
+        # A running drive that refuses a new setpoint or direction runs on at the old
+        # speed, maybe the other way (outside audit): it is idled until one is taken.
+        try:
+            self.write_raw(self._setpoint, raw)   # (a refused setpoint never (re)starts it)
+        except (ProtocolException, PassingRefusal):
+            if raw != self.last_setpoint_raw:
+                self._idle_after_refusal(idle_action)
+            raise
         self.last_setpoint_raw = raw
         wanted = run_action
         if wanted == self.asserted_command and not reassert:
             return
-        if (reassert or self.asserted_command not in ('run', 'run_reverse')) and \
-                self.profile.control.run_edge_from is not None:
-            self.write_raw(self._command, self.profile.control.run_edge_from)
-        self.send_command(wanted)
+        try:
+            if (reassert or self.asserted_command not in RUN_ACTIONS) and \
+                    self.profile.control.run_edge_from is not None:
+                self.write_raw(self._command, self.profile.control.run_edge_from)
+            self.send_command(wanted)
+        except (ProtocolException, PassingRefusal):
+            self._idle_after_refusal(idle_action)
+            raise
+
+    def _idle_after_refusal(self, idle_action: str) -> None:
+        """Idle a drive told to run whose new command was refused (best effort)."""
+        if self.asserted_command in RUN_ACTIONS:
+            with contextlib.suppress(ProtocolException, PassingRefusal):
+                self.send_command(idle_action)
 
     def _apply_idle(self, raw: int, idle_action: str, reassert: bool) -> None:
         """Idle: the stop command first where it is due, then the zero setpoint.
