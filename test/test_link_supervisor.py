@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from vfd_ros2.control.link import OFFLINE_LOG_PERIOD, LinkSupervisor
+from vfd_ros2.control.link import CONNECT_FAILURES_TOLD, OFFLINE_LOG_PERIOD, LinkSupervisor
 from vfd_ros2.errors import CommTimeout
 
 
@@ -75,3 +75,34 @@ def test_failed_connects_count_in_a_row_until_online_or_closed():
     link.connect_failed(CommTimeout('no reply'))
     link.connected()
     assert link.failed_connects == 0
+
+
+def test_connect_failures_are_logged_once_per_kind_while_the_drive_stays_offline(caplog):
+    """Two reasons that alternate, or one naming the bytes received: a line per attempt.
+
+    A second drive on a gateway that takes one connection logged 55 lines in 12 s
+    (outside audit), and a reply with another transaction id one per attempt.
+    """
+    link = LinkSupervisor('drive x', threshold=2, retry_period=0.5, clock=StepClock())
+    caplog.set_level(logging.INFO, logger='vfd_ros2.control.link')
+    for attempt in range(20):
+        link.connect_failed(CommTimeout('write 0x0005 @ 0x2000 (unit 2): [Errno 104] '
+                                        'Connection reset by peer'))
+        link.connect_failed(CommTimeout('cannot open tcp://127.0.0.1:15502'))
+        link.connect_failed(CommTimeout(f'write 0x{1200 + attempt:04x} @ 0x2001 (unit 1): '
+                                        f'malformed reply 04 {attempt:02x} 00 00 00 06 01 06'))
+    lines = [r.getMessage() for r in caplog.records if 'connect failed' in r.getMessage()]
+    assert lines == [
+        'drive x: connect failed: write 0x0005 @ 0x2000 (unit 2): [Errno 104] Connection '
+        'reset by peer',
+        'drive x: connect failed: cannot open tcp://127.0.0.1:15502',
+        'drive x: connect failed: write 0x04b0 @ 0x2001 (unit 1): malformed reply 04 00 00 '
+        '00 00 06 01 06']
+    for n in range(2 * CONNECT_FAILURES_TOLD):            # kinds without end: bounded
+        link.connect_failed(CommTimeout(f'refused value {"x" * n}'))
+    assert len([r for r in caplog.records if 'connect failed' in r.getMessage()]) == \
+        CONNECT_FAILURES_TOLD
+    link.connected()                                      # online again: told afresh
+    link.connect_failed(CommTimeout('cannot open tcp://127.0.0.1:15502'))
+    assert caplog.records[-1].getMessage() == \
+        'drive x: connect failed: cannot open tcp://127.0.0.1:15502'
