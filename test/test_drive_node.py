@@ -13,6 +13,7 @@ from pymodbus.framer import FramerRTU
 from sensor_msgs.msg import JointState
 
 from harness import diagnostic_levels_until_at, wait_for
+from vfd_ros2.control import controller
 from vfd_ros2.protocol.scaling import RPM_PER_RAD_S
 from vfd_ros2.srv import GetDriveParameter, SetDriveParameter
 
@@ -308,6 +309,63 @@ def test_a_drive_that_reset_is_configured_again_and_runs_on_fresh_commands(make_
     h.wait_status(lambda s: s.state == 'running' and s.running and
                   abs(s.measured_velocity - 1.0) < 0.02, 5.0, 'running again')
     assert h.sim.value('C02.04') == written, 'the comm-loss timeout written again'
+
+
+def test_an_idle_drive_that_reset_within_the_comm_loss_threshold_is_configured_again(
+        make_harness, caplog):
+    """A short brown-out: one failed exchange, then the drive answers with its factory values.
+
+    Idle, it never went offline, and ran without the host-loss protection ~/status
+    showed for it (outside audit). After a failed exchange the settings written at
+    connect are read back: it is connected afresh, the timeout written again.
+    """
+    caplog.set_level('WARNING')
+    h = make_harness(node_parameters={'comm_loss_threshold': 20})
+    status = h.wait_status(lambda s: s.online, 5.0, 'online')
+    written, timeouts = h.sim.value('C02.04'), status.timeouts
+    assert written == status.host_loss_timeout
+    timeout = h.profile.parameter('C02.04')
+    h.sim.silent = True                                  # the reset...
+    h.wait_status(lambda s: s.timeouts > timeouts, 3.0, 'a failed exchange')
+    h.sim.write(timeout.address, [timeout.to_raw(2.0)])  # ...and its factory value
+    h.sim.silent = False
+    h.wait_status(lambda s: s.reconnects >= 1, 5.0, 'connected afresh')
+    assert any('the drive reset: C02.04 reads 2s' in r.getMessage() for r in caplog.records), \
+        [r.getMessage() for r in caplog.records]
+    wait_for(lambda: h.sim.value('C02.04') == written, 3.0, 'the comm-loss timeout written again')
+    assert not h.sim.run_requested
+
+
+def test_settings_a_drive_loses_without_a_failed_exchange_are_found_in_turn(make_harness,
+                                                                             monkeypatch):
+    """A reset at its keypad, between two polls of a long bus cycle: one read-back in turn."""
+    monkeypatch.setattr(controller, 'SETTINGS_CHECK_PERIOD', 0.1)
+    h = make_harness()
+    status = h.wait_status(lambda s: s.online, 5.0, 'online')
+    written = h.sim.value('C02.04')
+    timeout = h.profile.parameter('C02.04')
+    h.sim.write(timeout.address, [timeout.to_raw(2.0)])
+    status = h.wait_status(lambda s: s.reconnects >= 1, 5.0, 'connected afresh')
+    assert status.timeouts == 0
+    wait_for(lambda: h.sim.value('C02.04') == written, 3.0, 'the comm-loss timeout written again')
+
+
+def test_a_comm_loss_timeout_the_drive_refuses_at_connect_is_not_shown_as_written(
+        make_harness, monkeypatch):
+    """~/status showed the planned 0.8 s while the drive held its factory 2 s (outside audit)."""
+    monkeypatch.setattr(controller, 'SETTINGS_CHECK_PERIOD', 0.1)
+    h = make_harness()
+    status = h.wait_status(lambda s: s.online, 5.0, 'online')
+    assert status.host_loss_timeout > 0 and 'C02.04' in status.host_loss_protection
+    timeout = h.profile.parameter('C02.04')
+    with h.sim.lock:                       # reset, and it now refuses the value
+        h.sim.write(timeout.address, [timeout.to_raw(2.0)])
+        h.sim.refuse_writes(['C02.04'])
+    status = h.wait_status(lambda s: s.reconnects >= 1 and s.online, 5.0, 'connected afresh')
+    assert status.host_loss_timeout == 0.0, status.host_loss_protection
+    assert status.host_loss_protection.startswith('none: C02.04 = ') and \
+        'refused at connect' in status.host_loss_protection, status.host_loss_protection
+    assert any('C02.04' in u and 'not set' in u for u in status.unavailable), status.unavailable
 
 
 def test_enable_on_a_running_drive_writes_no_run_edge(make_harness):

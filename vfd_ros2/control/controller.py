@@ -77,6 +77,11 @@ SLIP_SHARE = 0.12
 FOLLOWING_SMOOTHING = 0.3
 
 #: the service actions that forget the commands taken before them (see forget_commands)
+#: s between two read-backs of one setting written at connect (in turn), and at least
+#: between two of all of them after a failed exchange (see _check_settings)
+SETTINGS_CHECK_PERIOD = 10.0
+SETTINGS_CHECK_AFTER_FAILURE = 1.0
+
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
 
 #: what ``DriveController.reconfigure`` may change while the loop runs
@@ -222,6 +227,8 @@ class DriveController:
         self._last_running = False
         self._not_running_since: float | None = None  # told to run, not running since
         self._lost_run = ''             # why a drive told to run does not, once it is clear
+        self._exchange_failed = False   # since the settings were last read back
+        self._settings_checked_at = -math.inf
         self._running_idle_since: float | None = None   # running while held idle, since
         self._running_idle_speed = math.nan  # |measured speed| then (a ramp brings it down)
         self._ramp_windows = 0          # stop_timeout windows given to a ramp so far
@@ -652,6 +659,7 @@ class DriveController:
                     self._check_addressing(gap)
                 self._check_fault()
                 self._check_unexpected_motion()
+                self._check_settings()
                 self._check_following()
                 self._actions.advance()
                 self.link.cycle_ok()
@@ -828,6 +836,7 @@ class DriveController:
         self._off_command_since, self._not_following = None, ''
         self._polled_at, self._near_trips, self._raise_refused = None, 0, 0.0
         self._check_comm_fault = True
+        self._exchange_failed, self._settings_checked_at = False, self._clock()
         # Online from here, but nothing is known of the drive's state until a status
         # read succeeds (the first may fail): hold it idle, never report "no fault".
         self._reading = Reading(unsafe=STATUS_NOT_READ)
@@ -935,6 +944,7 @@ class DriveController:
 
     def _link_failed(self, exc: VfdError) -> None:
         self._polled_at = None      # a gap while the link fails is not the cycle's
+        self._exchange_failed = True
         if self.link.cycle_failed(exc):
             self._reading = Reading()
             # A drive the link lost may still hear it (its heartbeat or TPDOs gone, a
@@ -1086,6 +1096,31 @@ class DriveController:
                               'locally, or is inhibited): call ~/enable to write the run '
                               'command again')
             log.warning('%s: %s', self.drive.hardware_id, self._lost_run)
+
+    def _check_settings(self) -> None:
+        """Read back the settings written at connect; a drive that lost them reset.
+
+        An idle drive that reset within the comm-loss threshold (a short brown-out)
+        came back with its factory settings, without the host-loss protection
+        ~/status showed for it (outside audit), and a long bus cycle can hide a
+        whole reset. All of them after a failed exchange (at most every
+        SETTINGS_CHECK_AFTER_FAILURE), one in turn every SETTINGS_CHECK_PERIOD
+        otherwise. A drive that lost them is connected afresh: the stop first,
+        then its settings, and it runs only on the commands that come after.
+        """
+        settings_lost = getattr(self.drive, 'settings_lost', None)
+        if settings_lost is None or not self.link.online:
+            return
+        now, after_failure = self._clock(), self._exchange_failed
+        due = SETTINGS_CHECK_AFTER_FAILURE if after_failure else SETTINGS_CHECK_PERIOD
+        if now - self._settings_checked_at < due:
+            return
+        self._exchange_failed, self._settings_checked_at = False, now
+        lost = settings_lost(one=not after_failure)
+        if lost:
+            self.link.drop(f'the drive reset: {lost}')
+            self._reading = Reading()
+            self.drive.close()
 
     def _check_following(self) -> None:
         """Tell a drive that runs but does not reach its command, for as long as it does not.

@@ -10,6 +10,7 @@ import contextlib
 import logging
 import math
 import time
+from dataclasses import replace
 from functools import partial
 from typing import Any, Callable, ClassVar, Mapping, TypeVar
 
@@ -142,6 +143,10 @@ class ModbusDrive(DriveOnLink):
         self._switch_pending: tuple[Parameter, int] | None = None
         #: what configure() found where the drive's nameplate and the node's scaling differ
         self.nameplate_note = ''
+        #: the host-loss protection, where the drive refused the planned one (None: it
+        #: holds as planned; see DriveController.protection_applied)
+        self.protection_applied: HostLossProtection | None = None
+        self._next_setting = 0          # the one settings_lost(one=True) reads back next
 
     @property
     def link_parameters(self) -> tuple[str, ...]:
@@ -280,6 +285,7 @@ class ModbusDrive(DriveOnLink):
             wanted += [(item.code, item.value) for item in self.profile.commissioning]
         problems = []
         self._configured = []
+        self.protection_applied = None
         for code, value in wanted:
             parameter = self.profile.parameter(code)
             try:
@@ -292,6 +298,14 @@ class ModbusDrive(DriveOnLink):
                 self._configured.append((parameter, raw))
             except (ParameterError, ProtocolException) as exc:
                 problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
+                if self.profile.comm_timeout is not None and \
+                        code == self.profile.comm_timeout.parameter and protection.active:
+                    # ~/status showed the planned protection as written (outside audit)
+                    self.protection_applied = replace(
+                        protection, mechanism='', timeout=0.0,
+                        note=f'{code} = {value:g}{parameter.unit} refused at connect: the '
+                             "drive's own setting decides what it does when the host "
+                             'falls silent')
         self.nameplate_note = self._nameplate_note()
         return problems
 
@@ -369,14 +383,19 @@ class ModbusDrive(DriveOnLink):
         self._configured = [(p, r) for p, r in self._configured if p is not parameter]
         self._configured.append((parameter, raw))
 
-    def settings_lost(self) -> str:
+    def settings_lost(self, one: bool = False) -> str:
         """Read back what ``configure`` set; say what differs now ('' if nothing does).
 
         A drive that lost them reset (a power cycle keeps only what its EEPROM
         holds); one that kept them was stopped by other means (its keypad, an
-        input). A value it now refuses to read is not evidence either way.
+        input). A value it now refuses to read is not evidence either way. ``one``:
+        only the next of them, in turn (a slow check that costs one read).
         """
-        for parameter, raw in self._configured:
+        settings = self._configured
+        if one and settings:
+            self._next_setting = (self._next_setting + 1) % len(settings)
+            settings = settings[self._next_setting:self._next_setting + 1]
+        for parameter, raw in settings:
             try:
                 now = self.read_value(parameter).raw
             except ProtocolException:
