@@ -66,6 +66,19 @@ def test_fault_emcy_and_reset(make_can_harness):
     assert wheel.status.online
 
 
+def test_an_emcy_the_drive_does_not_fault_on_is_the_warning_until_its_error_reset(
+        make_can_harness):
+    """A temperature EMCY without a fault was only a log line (outside audit)."""
+    h = make_can_harness()
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.wait_status(lambda s: s.online and not s.warning, 5.0, 'online, no warning')
+    sim.send_emcy(0x4310, 0x09)                    # excess temperature, drive (CiA 301)
+    status = wheel.wait_status(lambda s: s.warning, 3.0, 'the warning in ~/status')
+    assert status.warning_code == 0x4310 and not status.fault, status
+    sim.send_emcy(0)                                # error reset
+    wheel.wait_status(lambda s: not s.warning and s.warning_code == 0, 3.0, 'warning cleared')
+
+
 def test_parameters_and_abort_codes(make_can_harness):
     h = make_can_harness()
     wheel, sim = h.wheels[1], h.sims[1]
@@ -400,6 +413,30 @@ def test_a_node_that_goes_to_nmt_stopped_by_itself_is_stopped_and_taken_back(
     wheel.wait_status(lambda s: s.running and abs(s.measured_velocity - 1.0) < 0.05, 6.0,
                       'running on the commands after it')
     wheel.stop_stream()
+
+
+def test_a_node_whose_heartbeat_stops_stays_offline_until_it_comes_back(make_can_harness):
+    """Its SDO and TPDOs go on: each connect took it online without a heartbeat.
+
+    The supervision dropped it at once and it was connected again, twice a second:
+    ~/status and /diagnostics alternated online and offline (outside audit). A
+    connect now needs a heartbeat after NMT start.
+    """
+    h = make_can_harness(node_parameters={'reconnect_period': 0.2})
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.wait_status(lambda s: s.online, 5.0, 'online')
+    sim.heartbeat_off = True
+    status = wheel.wait_status(lambda s: not s.online, 3.0, 'offline: no heartbeat')
+    reconnects = status.reconnects
+    wheel.wait_status(lambda s: 'within' in s.stop_reason, 3.0, 'a connect refused')
+    start = len(wheel.statuses)
+    time.sleep(1.5)                                  # several reconnect periods
+    seen = wheel.statuses[start:]
+    assert seen and not any(s.online for s in seen), 'taken online without a heartbeat'
+    assert seen[-1].reconnects == reconnects
+    assert 'no heartbeat from node 1 within' in seen[-1].stop_reason, seen[-1].stop_reason
+    sim.heartbeat_off = False
+    wheel.wait_status(lambda s: s.online, 5.0, 'online again')
 
 
 def test_tpdos_of_the_wrong_length_are_named_not_taken_for_silence(make_can_harness, caplog):

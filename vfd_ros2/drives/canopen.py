@@ -190,6 +190,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values: dict[str, int] = {}    # role -> raw
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
+        self._fault_emcy = 0            # the EMCY code a fault came with (no warning)
         #: which EMCYs are logged in full (each distinct one until an error reset)
         self.emcy_log = RepeatSummary(max_keys=EMCY_LOGGED_MAX)
 
@@ -280,6 +281,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._values.clear()
         self._last_controlword = None
         self._emcy_fault = NO_FAULT
+        self._fault_emcy = 0
         self.emcy_log.forget()
 
     def _write(self, obj: CanObject, raw: int) -> None:
@@ -657,6 +659,8 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             log.warning('%s: %d more EMCY frames, already logged since the last error reset',
                         self.hardware_id, repeats)
         self._emcy_fault = self._describe_emcy(active[-1]) if active else NO_FAULT
+        if not active:
+            self._fault_emcy = 0
 
     def _reading(self) -> Reading:
         reading = Reading(stuck=self.cia.stuck)
@@ -682,6 +686,16 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
             faulted = reading.flags.get('fault', code != 0)
         reading.fault = decode_fault(faulted, code, self._emcy_fault, self.profile.faults,
                                      self._cia_codes)
+        if reading.fault.active:
+            self._fault_emcy = self._emcy_fault.code
+        elif self._emcy_fault.active and self._emcy_fault.code != self._fault_emcy:
+            # An EMCY the drive did not fault on (a warning: a temperature, say) is the
+            # warning until its error reset; it was only logged (outside audit). The
+            # one a fault came with is not, after the fault's reset, without an EMCY
+            # error reset: some drives send none.
+            reading.warning_code = self._emcy_fault.code
+            reading.warning_subcode = self._emcy_fault.subcode
+            reading.flags['warning'] = True
         speed = reading.values.get('motor_speed')
         if speed is not None:
             reading.measured_velocity = self.scaling.from_native(speed,

@@ -116,6 +116,7 @@ class SimulatedCanopenDrive:
         self._host_seen: float | None = None
         self.silent = False
         self.tpdos_off = False      # heartbeat and SDO go on, no TPDO (a dead PDO producer)
+        self.heartbeat_off = False  # TPDOs and SDO go on, no heartbeat (0x1017 not obeyed)
         self.tpdo_bytes: int | None = None  # TPDOs cut to this length (a mapping gone wrong)
         self.enable_blocked = False         # e.g. safe torque off: cannot leave SWITCH_ON_DISABLED
         self.ignores_nmt_start = False      # NMT start (0x01) not obeyed: stays pre-operational
@@ -369,6 +370,11 @@ class SimulatedCanopenDrive:
             self.state = State.FAULT
             self._emcy(code, register)
 
+    def send_emcy(self, code: int, register: int = GENERIC_REGISTER) -> None:
+        """Send an EMCY without faulting (a warning: a temperature, say); 0: error reset."""
+        with self.lock:
+            self._emcy(code, register)
+
     def _emcy(self, code: int, register: int = GENERIC_REGISTER) -> None:
         if code == 0:
             frame = (0, 0, bytes(5))
@@ -522,7 +528,7 @@ class SimulatedCanopenDrive:
 
     def _produce(self, now: float) -> None:
         period = self._stored(0x1017, 0) / 1000.0
-        if period > 0 and now - self._last_heartbeat >= period:
+        if period > 0 and now - self._last_heartbeat >= period and not self.heartbeat_off:
             self._last_heartbeat = now
             self.network.send_message(0x700 + self.node_id, bytes((self.node.nmt._state,)))  # noqa: SLF001
         if self.node.nmt.state != 'OPERATIONAL' or self.tpdos_off:

@@ -1061,10 +1061,12 @@ class CanopenTransport(Transport):
     def await_operational(self, unit: int, wait: float) -> str | None:
         """Wait up to ``wait`` s for node ``unit``'s heartbeats since ``supervise`` to agree.
 
-        Return None once one reports Operational (or none came in time: the
-        supervision judges), else the state two in a row report instead (the first
-        may have been in flight when NMT start was sent): a node that ignores NMT
-        start, which must not be taken for a started one.
+        Return None once one reports Operational (or one that is not came, alone, in
+        time: the supervision judges), else the state two in a row report instead
+        (the first may have been in flight when NMT start was sent): a node that
+        ignores NMT start, which must not be taken for a started one. Raise
+        CommTimeout when none came: taken online, such a node was dropped by the
+        supervision at once and connected again, twice a second (outside audit).
         """
         link = self._link(unit)
         deadline = time.monotonic() + wait
@@ -1078,7 +1080,11 @@ class CanopenTransport(Transport):
             if refused and state is not None:
                 return NMT_STATES.get(state, f'0x{state:02X}')
             if time.monotonic() >= deadline:
-                return None
+                if heard:
+                    return None
+                self.count(unit, 'timeouts')
+                raise CommTimeout(f'no heartbeat from node {unit} within {wait:.2f} s of '
+                                  'NMT start (its producer time 0x1017 was written)')
             time.sleep(HEARTBEAT_POLL)
 
     def check_alive(self, unit: int) -> str | None:
