@@ -177,6 +177,31 @@ def test_a_read_gets_the_right_value_or_a_clear_error_and_the_next_reads_recover
     _reads_back_right(transport)
 
 
+def test_a_timeout_that_heard_only_an_earlier_requests_late_reply_is_a_timeout(slave,
+                                                                                transport):
+    """A slave whose replies come 1.5 timeouts late: each wait hears the one before.
+
+    pymodbus skips it (another transaction id) and times out; the bytes it heard were
+    counted as a malformed reply (outside audit). Now: a timeout and a late reply.
+    """
+    _reads_back_right(transport)
+    delays = [1.5 * TIMEOUT, 1.5 * TIMEOUT]
+
+    def late(tid: int, unit: int, pdu: bytes, correct: bytes) -> bytes:
+        if delays:
+            time.sleep(delays.pop(0))
+        return _mbap(tid, unit, correct)
+    slave.behaviour = late
+    with pytest.raises(CommTimeout):
+        transport.read_registers(1, 0x100, 2)
+    with pytest.raises(CommTimeout, match='only a late one to an earlier request'):
+        transport.read_registers(1, 0x110, 2)
+    stats = transport.stats
+    assert (stats.timeouts, stats.late_replies, stats.bad_frames) == (2, 1, 0)
+    time.sleep(1.5 * TIMEOUT)               # the second late reply arrives before the next
+    _reads_back_right(transport)
+
+
 def test_a_write_whose_echo_names_another_value_is_refused(slave, transport):
     slave.behaviour = lambda t, u, p, c: _mbap(t, u, c[:3] + struct.pack('>H', 0x1234))
     with pytest.raises(BadFrame, match='echo names 0x1234'):

@@ -61,6 +61,10 @@ STANDARD_EXCEPTIONS: dict[int, str] = {
 #: value, so the store is emptied when full
 REQUESTS_KEPT = 512
 
+#: transaction ids back a reply may be to be taken for a late one (Modbus TCP): the
+#: reply to an earlier request, after its timeout, not a malformed one
+LATE_REPLY_WINDOW = 64
+
 
 class _ModbusTransport(RegisterTransport):
     """What every Modbus transport shares: the requests, reply checks and counters.
@@ -189,6 +193,11 @@ class _PymodbusTransport(_ModbusTransport):
             self._received = data
         return data
 
+    def _unpaired(self, request: ModbusPDU) -> TransportError:
+        """Count and return the error for a reply pymodbus did not pair with ``request``."""
+        self.count(request.dev_id, 'bad_frames')
+        return BadFrame(f'{self._what(request)}: malformed reply {self._received.hex(" ")}')
+
     def open(self) -> None:
         try:
             connected = self._client.connect()
@@ -220,9 +229,7 @@ class _PymodbusTransport(_ModbusTransport):
                                  f'{exc}') from exc
         except ModbusIOException as exc:
             if self._received:
-                self.count(unit, 'bad_frames')
-                raise BadFrame(f'{self._what(request)}: malformed reply '
-                               f'{self._received.hex(" ")}') from exc
+                raise self._unpaired(request) from exc
             self.count(unit, 'timeouts')
             raise CommTimeout(f'{self._what(request)}: {exc} from {self.description}') from exc
         except (ModbusException, OSError, ValueError) as exc:
@@ -564,6 +571,23 @@ class ModbusTcpTransport(_PymodbusTransport):
         if self._client.socket is None:
             super().open()
             self._fresh = True
+
+    def _unpaired(self, request: ModbusPDU) -> TransportError:
+        """Tell a timeout that heard only a late reply to an earlier request from a bad frame.
+
+        pymodbus skips a reply whose transaction id is not the request's, then times
+        out: the bytes it received were counted as a malformed reply (outside audit),
+        where this request had none and an earlier one's came late.
+        """
+        received = self._received
+        tid = int.from_bytes(received[:2], 'big') if len(received) >= 8 else -1
+        if not 0 < request.transaction_id - tid <= LATE_REPLY_WINDOW:
+            return super()._unpaired(request)
+        self.count(request.dev_id, 'late_replies')
+        self.count(request.dev_id, 'timeouts')
+        return CommTimeout(f'{self._what(request)}: no reply from {self.description} in '
+                           f'time (only a late one to an earlier request, transaction id '
+                           f'{tid}, came: discarded)')
 
     def _client_execute(self, request: ModbusPDU) -> ModbusPDU:
         """Execute; on a reused connection the peer dropped meanwhile, once more afresh.
