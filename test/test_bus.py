@@ -213,7 +213,8 @@ def test_a_starting_bus_connects_what_fits_the_cycle_its_drives_were_sized_for(
             assert online_after[0] <= 2, online_after
             return
         assert online_after[0] >= 3, online_after         # not one drive per cycle
-        assert online_after[-1] == len(present) and len(online_after) <= 5, online_after
+        # (seven cycles: a connect plans each setting read, written and read back)
+        assert online_after[-1] == len(present) and len(online_after) <= 7, online_after
         assert not bus.controllers['d20'].link.online
     finally:
         bus.finish()

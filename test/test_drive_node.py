@@ -363,9 +363,26 @@ def test_a_comm_loss_timeout_the_drive_refuses_at_connect_is_not_shown_as_writte
         h.sim.refuse_writes(['C02.04'])
     status = h.wait_status(lambda s: s.reconnects >= 1 and s.online, 5.0, 'connected afresh')
     assert status.host_loss_timeout == 0.0, status.host_loss_protection
-    assert status.host_loss_protection.startswith('none: C02.04 = ') and \
-        'refused at connect' in status.host_loss_protection, status.host_loss_protection
+    assert status.host_loss_protection.startswith('none: at connect C02.04 = ') and \
+        's not set: ' in status.host_loss_protection, status.host_loss_protection
     assert any('C02.04' in u and 'not set' in u for u in status.unavailable), status.unavailable
+
+
+def test_a_setting_the_drive_acknowledges_and_does_not_store_is_reported_not_looped(
+        make_harness, monkeypatch):
+    """Its read-back differs: reported at connect, and not taken for a reset at each check."""
+    monkeypatch.setattr(controller, 'SETTINGS_CHECK_PERIOD', 0.1)
+    h = make_harness()
+    h.wait_status(lambda s: s.online, 5.0, 'online')
+    timeout = h.profile.parameter('C02.04')
+    with h.sim.lock:                       # reset; it now takes the write and keeps 2 s
+        h.sim.write(timeout.address, [timeout.to_raw(2.0)])
+        h.sim.write_ignored.add(timeout.address)
+    status = h.wait_status(lambda s: s.reconnects >= 1 and s.online, 5.0, 'connected afresh')
+    assert status.host_loss_protection.startswith('none: at connect C02.04 = ') and \
+        'written, the drive holds 2s' in status.host_loss_protection, status.host_loss_protection
+    time.sleep(1.0)                         # ten checks
+    assert h.wait_status(lambda s: True, 1.0).reconnects == 1
 
 
 def test_enable_on_a_running_drive_writes_no_run_edge(make_harness):

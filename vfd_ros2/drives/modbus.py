@@ -239,12 +239,12 @@ class ModbusDrive(DriveOnLink):
         return total
 
     def connect_seconds(self) -> float:
-        """Wire time of a connect: zero setpoint, idle command, settings read and written."""
+        """Wire time of a connect: zero setpoint, idle command, settings read, written, read."""
         exchange = self.transport.exchange_seconds
         total = exchange(*self._write_requests(self._setpoint))
         total += 2 * exchange(*self._write_requests(self._command))
         settings = len(self.profile.commissioning) + (self.profile.comm_timeout is not None)
-        total += settings * (exchange(8, reply_size(3, 2)) + exchange(8, reply_size(6)))
+        total += settings * (2 * exchange(8, reply_size(3, 2)) + exchange(8, reply_size(6)))
         total += len(self._nameplate_codes()) * exchange(8, reply_size(3, 2))
         return total + self.cycle_seconds()
 
@@ -288,24 +288,33 @@ class ModbusDrive(DriveOnLink):
         self.protection_applied = None
         for code, value in wanted:
             parameter = self.profile.parameter(code)
+            why = ''
             try:
                 raw = parameter.to_raw(value)
-                if self.read_value(parameter).raw != raw:
+                held = self.read_value(parameter).raw
+                if held != raw:
                     self.write_raw(parameter, raw)
+                    held = self.read_value(parameter).raw     # (a write taken, not stored)
                 if pending is not None and parameter is pending[0]:
                     self._switch_pending = None
                     continue                # (the switch is no setting the node keeps)
-                self._configured.append((parameter, raw))
+                # settings_lost() compares with what the drive holds: one that stores a
+                # value otherwise must not look reset at every check
+                self._configured.append((parameter, held))
+                if held != raw:
+                    why = f'written, the drive holds {parameter.from_raw(held):g}{parameter.unit}'
             except (ParameterError, ProtocolException) as exc:
-                problems.append(f'{code} = {value:g}{parameter.unit} not set: {exc}')
-                if self.profile.comm_timeout is not None and \
-                        code == self.profile.comm_timeout.parameter and protection.active:
-                    # ~/status showed the planned protection as written (outside audit)
-                    self.protection_applied = replace(
-                        protection, mechanism='', timeout=0.0,
-                        note=f'{code} = {value:g}{parameter.unit} refused at connect: the '
-                             "drive's own setting decides what it does when the host "
-                             'falls silent')
+                why = f'not set: {exc}'
+            if not why:
+                continue
+            problems.append(f'{code} = {value:g}{parameter.unit} {why}')
+            if self.profile.comm_timeout is not None and \
+                    code == self.profile.comm_timeout.parameter and protection.active:
+                # ~/status showed the planned protection as written (outside audit)
+                self.protection_applied = replace(
+                    protection, mechanism='', timeout=0.0,
+                    note=f"at connect {code} = {value:g}{parameter.unit} {why}: the drive's "
+                         'own setting decides what it does when the host falls silent')
         self.nameplate_note = self._nameplate_note()
         return problems
 

@@ -85,6 +85,7 @@ class SimulatedDrive:
         # Registers this unit will not store (answered like a read-only register), as a
         # drive with a parameter lock or a stricter firmware would: reads still answer.
         self.write_refused: set[int] = set()
+        self.write_ignored: set[int] = set()   # acknowledged, not stored (a faulty drive)
         self.requests = 0
         self.last_command_value: int | None = None
         self._last_request: float | None = None
@@ -200,6 +201,8 @@ class SimulatedDrive:
                 pending.append((parameter, raw))
                 offset += count
             for parameter, raw in pending:     # all or nothing
+                if parameter.address in self.write_ignored:
+                    continue
                 self._store(parameter, raw)
                 self._on_write(parameter, raw)
 
