@@ -76,12 +76,12 @@ SLIP_SHARE = 0.12
 #: s over which the measured speed is smoothed when judging progress towards a command
 FOLLOWING_SMOOTHING = 0.3
 
-#: the service actions that forget the commands taken before them (see forget_commands)
 #: s between two read-backs of one setting written at connect (in turn), and at least
 #: between two of all of them after a failed exchange (see _check_settings)
 SETTINGS_CHECK_PERIOD = 10.0
 SETTINGS_CHECK_AFTER_FAILURE = 1.0
 
+#: the service actions that forget the commands taken before them (see forget_commands)
 FORGETTING_ACTIONS = frozenset({'stop', 'disable'})
 
 #: what ``DriveController.reconfigure`` may change while the loop runs

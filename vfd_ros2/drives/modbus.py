@@ -500,7 +500,7 @@ class ModbusDrive(DriveOnLink):
         native = self.scaling.to_native(velocity, spec.setpoint_unit)
         action = 'run'
         if spec.direction is DirectionMode.COMMAND:
-            action = 'run_reverse' if native < 0 else 'run'     # (RUN_ACTIONS)
+            action = 'run_reverse' if native < 0 else 'run'
             native = abs(native)
         p = self._setpoint
         low = p.minimum if p.minimum is not None else -math.inf
