@@ -439,6 +439,22 @@ def test_a_node_whose_heartbeat_stops_stays_offline_until_it_comes_back(make_can
     wheel.wait_status(lambda s: s.online, 5.0, 'online again')
 
 
+def test_a_connect_that_is_not_completed_leaves_the_node_pre_operational(make_can_harness):
+    """Started and not heard, the node stayed OPERATIONAL until the next attempt.
+
+    There it tripped on the RPDO deadline the connect had set and came back with a
+    fault to reset by hand (outside re-check). It is put back to PRE-OPERATIONAL.
+    """
+    h = make_can_harness(node_parameters={'reconnect_period': 4.0,
+                                          'drive_comm_timeout': 0.0})   # (no consumer)
+    wheel, sim = h.wheels[1], h.sims[1]
+    wheel.wait_status(lambda s: s.online, 5.0, 'online')
+    sim.heartbeat_off = True
+    wheel.wait_status(lambda s: 'within' in s.stop_reason, 8.0, 'a connect not completed')
+    wait_for(lambda: sim.node.nmt.state == 'PRE-OPERATIONAL', 1.0,
+             'pre-operational, the next attempt 4 s away')
+
+
 def test_tpdos_of_the_wrong_length_are_named_not_taken_for_silence(make_can_harness, caplog):
     """TPDO1 keeps coming, three bytes short of its mapping: the reason says so."""
     caplog.set_level('WARNING')

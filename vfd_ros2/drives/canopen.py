@@ -20,6 +20,7 @@ statusword; otherwise the profile's ``fault`` flag); the fault code object
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -328,11 +329,19 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         if heartbeat > 0:
             # Started only once its heartbeat says so: a node ignoring NMT start stayed
             # pre-operational (no PDOs) and was taken online, then dropped, in a loop.
-            refused = t.await_operational(unit, min(2.5 * heartbeat / 1000.0,
-                                                    OPERATIONAL_WAIT_LONGEST))
-            if refused is not None:
-                raise TransportError(f'node {unit} stays {refused} after NMT start '
-                                     '(its heartbeat): no PDOs are exchanged')
+            try:
+                refused = t.await_operational(unit, min(2.5 * heartbeat / 1000.0,
+                                                        OPERATIONAL_WAIT_LONGEST))
+                if refused is not None:
+                    raise TransportError(f'node {unit} stays {refused} after NMT start '
+                                         '(its heartbeat): no PDOs are exchanged')
+            except TransportError:
+                # Not taken online: back to PRE-OPERATIONAL, or a node that did start
+                # and is not heard trips on the RPDO deadline just set, and comes back
+                # with a fault to reset by hand (outside re-check)
+                with contextlib.suppress(TransportError):
+                    t.nmt(unit, 'PRE-OPERATIONAL')
+                raise
         self._tpdo_periods = self._tpdo_rates()
         self._tpdo_polls.clear()
         self._configured_at = time.monotonic()
