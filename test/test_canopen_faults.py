@@ -34,6 +34,17 @@ def test_without_a_code_the_emcy_then_the_generic_error_names_it():
     assert kinco.display == '0x1000' and not kinco.known
 
 
+def test_a_fault_keeps_its_name_when_the_emcy_reset_comes_before_the_status_word():
+    """EMCY 0000 first, the status word still in fault: not the generic error for a cycle."""
+    named = describe_fault(CIA, 0x2310)
+    before = decode_fault(True, 0, named, CIA, cia_codes=True)
+    assert decode_fault(True, 0, NO_FAULT, CIA, cia_codes=True, before=before) is named
+    assert decode_fault(False, 0, NO_FAULT, CIA, cia_codes=True, before=before) is NO_FAULT
+    # a code the drive reports still names it
+    assert decode_fault(True, 0x8250, NO_FAULT, CIA, cia_codes=True, before=before).code == \
+        0x8250
+
+
 def test_cia_codes_outside_the_profile_table():
     fault = cia_fault(0x8130, register=0x11)
     assert fault.display == '0x8130' and fault.name == 'Monitoring error (CiA 301 class)'

@@ -104,13 +104,16 @@ def _abort(exc: ProtocolException) -> str:
 
 
 def decode_fault(faulted: bool, code: int, emcy: FaultInfo, faults: FaultSpec,
-                 cia_codes: bool) -> FaultInfo:
+                 cia_codes: bool, before: FaultInfo = NO_FAULT) -> FaultInfo:
     """Return the active fault: only while the drive's status says it is faulted.
 
     ``code`` (0x603F or the profile's fault-code object) names the fault; a drive
     may keep its last error there after a reset, so a code alone is no fault.
-    Without a code the last active EMCY names it, else the CiA 301 generic error.
-    ``cia_codes``: the profile's fault table holds CiA error codes (shown 0x....).
+    Without a code the last active EMCY names it, else the fault decoded ``before``
+    (the EMCY's error reset may come before the status word leaves fault: for that
+    cycle the cleared fault was named the generic error, outside re-check), else
+    the CiA 301 generic error. ``cia_codes``: the profile's fault table holds CiA
+    error codes (shown 0x....).
     """
     if not faulted:
         return NO_FAULT
@@ -118,6 +121,8 @@ def decode_fault(faulted: bool, code: int, emcy: FaultInfo, faults: FaultSpec,
         return describe_fault(faults, code)
     if emcy.active:
         return emcy
+    if before.active:
+        return before
     return describe_fault(faults, GENERIC_ERROR) if cia_codes else cia_fault(GENERIC_ERROR)
 
 
@@ -192,6 +197,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self._last_controlword: int | None = None
         self._emcy_fault: FaultInfo = NO_FAULT
         self._fault_emcy = 0            # the EMCY code a fault came with (no warning)
+        self._fault_shown: FaultInfo = NO_FAULT     # the last reading's
         #: which EMCYs are logged in full (each distinct one until an error reset)
         self.emcy_log = RepeatSummary(max_keys=EMCY_LOGGED_MAX)
 
@@ -281,7 +287,7 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
         self.cia.reset()
         self._values.clear()
         self._last_controlword = None
-        self._emcy_fault = NO_FAULT
+        self._emcy_fault = self._fault_shown = NO_FAULT
         self._fault_emcy = 0
         self.emcy_log.forget()
 
@@ -694,7 +700,8 @@ class CanopenDrive(DriveOnLink, ObjectDictionaryParameters):
                     reading.flags[name] = rule.evaluate(reading.values[rule.signal])
             faulted = reading.flags.get('fault', code != 0)
         reading.fault = decode_fault(faulted, code, self._emcy_fault, self.profile.faults,
-                                     self._cia_codes)
+                                     self._cia_codes, self._fault_shown)
+        self._fault_shown = reading.fault
         if reading.fault.active:
             self._fault_emcy = self._emcy_fault.code
         elif self._emcy_fault.active and self._emcy_fault.code != self._fault_emcy:
