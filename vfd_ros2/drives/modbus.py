@@ -288,7 +288,7 @@ class ModbusDrive(DriveOnLink):
         self.protection_applied = None
         for code, value in wanted:
             parameter = self.profile.parameter(code)
-            why = ''
+            why, held = '', None
             try:
                 raw = parameter.to_raw(value)
                 held = self.read_value(parameter).raw
@@ -310,11 +310,13 @@ class ModbusDrive(DriveOnLink):
             problems.append(f'{code} = {value:g}{parameter.unit} {why}')
             if self.profile.comm_timeout is not None and \
                     code == self.profile.comm_timeout.parameter and protection.active:
-                # ~/status showed the planned protection as written (outside audit)
+                # ~/status showed the planned protection as written (outside audit): what
+                # the drive holds instead, where it was read (0: none)
+                kept = parameter.from_raw(held) if held is not None else 0.0
                 self.protection_applied = replace(
-                    protection, mechanism='', timeout=0.0,
-                    note=f"at connect {code} = {value:g}{parameter.unit} {why}: the drive's "
-                         'own setting decides what it does when the host falls silent')
+                    protection, mechanism=f"{code} comm-loss timeout, the drive's own" if
+                    kept > 0 else '', timeout=max(kept, 0.0),
+                    note=f'at connect {code} = {value:g}{parameter.unit} {why}')
         self.nameplate_note = self._nameplate_note()
         return problems
 
