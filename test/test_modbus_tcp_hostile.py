@@ -48,6 +48,7 @@ class HostileSlave:
     def __init__(self, port: int = 0) -> None:
         self.behaviour: Misbehaviour | None = None
         self.close_after_reply = False       # as some gateways do: one reply per connection
+        self.reset_on_request = False        # RST instead of a reply (a gateway that is full)
         self._server = socket.create_server(('127.0.0.1', port))
         self.port = self._server.getsockname()[1]
         self._connections: list[socket.socket] = []
@@ -78,6 +79,11 @@ class HostileSlave:
             while len(received) >= 8:
                 tid, _protocol, length, unit = struct.unpack('>HHHB', received[:7])
                 pdu, received = received[7:6 + length], received[6 + length:]
+                if self.reset_on_request:
+                    connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER,
+                                          struct.pack('ii', 1, 0))
+                    connection.close()
+                    return
                 behaviour = self.behaviour
                 correct = _correct_pdu(pdu)
                 reply = _mbap(tid, unit, correct) if behaviour is None else \
@@ -199,6 +205,17 @@ def test_a_timeout_that_heard_only_an_earlier_requests_late_reply_is_a_timeout(s
     stats = transport.stats
     assert (stats.timeouts, stats.late_replies, stats.bad_frames) == (2, 1, 0)
     time.sleep(1.5 * TIMEOUT)               # the second late reply arrives before the next
+    _reads_back_right(transport)
+
+
+def test_a_connection_reset_by_the_peer_is_a_lost_link_not_a_bad_frame(slave, transport):
+    """A gateway that takes one connection resets the second: counted as bad frames before."""
+    _reads_back_right(transport)
+    slave.reset_on_request = True
+    with pytest.raises(TransportError, match='link lost'):
+        transport.read_registers(1, 0x100, 2)
+    assert transport.stats.bad_frames == 0 and transport.stats.connect_failures >= 1
+    slave.reset_on_request = False
     _reads_back_right(transport)
 
 

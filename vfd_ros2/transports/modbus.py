@@ -222,7 +222,8 @@ class _PymodbusTransport(_ModbusTransport):
         unit = request.dev_id
         try:
             return self._client_execute(request)
-        except ConnectionException as exc:
+        except (ConnectionException, ConnectionError) as exc:
+            # (a reset by the peer, too: a gateway taking one connection; no bad frame)
             self.count(unit, 'connect_failures')
             self.close()
             raise TransportError(f'{self._what(request)}: link lost ({self.description}): '
