@@ -432,9 +432,11 @@ BOUNDS = """### Targets and what bounds them
   x 500 Hz plus SYNC would exceed the bus's capacity anyway (`load % 1M`).
 - **CPU (≤ 3 % of one core per drive with 4 drives on a bus_node, ≤ 5 % for a single
   drive_node) — met in every run on the new machine: the full run of 2026-11-27
-  22:16 (the tables above, 0 % steal) 1.7 % per drive for four and 4.1 % for a drive_node,
-  two more runs of section 5 right after it 1.8 and 1.6 %, 4.1 and 4.4 %, and three runs of
-  the drive_node case before it 3.2, 3.6 and 4.2 %. The code is the one measured before;
+  22:16 (0 % steal) 1.7 % per drive for four and 4.1 % for a drive_node, two more runs of
+  section 5 right after it 1.8 and 1.6 %, 4.1 and 4.4 %, and three runs of the drive_node
+  case before it 3.2, 3.6 and 4.2 %; re-measured at 23:18 (the tables above) after the
+  outside audits' fixes (a Modbus drive's settings read back, one every 10 s; 6621 steps
+  per drive-cycle against 6579) 1.8 % and 4.6 %. The code of 22:16 is the one measured before;
   the machine is new and runs it cheaper (above). On the machine before, a drive_node
   was at the limit, met in most runs on a quiet host and not on a busy one (below), and a
   robot's computer may be either: `status_rate` is the lever an integrator has (section 5's
@@ -538,7 +540,9 @@ BOUNDS = """### Targets and what bounds them
   2026-11-27 00:36 (91.1 and 93.2 %); those at 02:20 and 02:47 gave 90.0 and 90.5 %, 89.0
   and 91.8 %, and that of 09:06 (replies unpacked from the frame, above) 94.5 and 95.2 %
   at 10-11 % of a core (was ~19 %); that of 22:16 on the new machine 95.0 and 95.9 %
-  at 8.6-8.8 %, all 32 online 11 s after start.** Before the executor change
+  at 8.6-8.8 %, all 32 online 11 s after start; re-measured at 23:18 (the table) 96.4 and
+  96.5 % at 6.8-7.5 %, all online after 13.2 s: a connect now reads back each setting it
+  writes, and plans that time.** Before the executor change
   one bus_node was CPU-bound at 101 % with 0.4 cycles/s per drive. What held it back, each
   fixed: the executor's wait set (above); the GIL hand-over — a control thread woken by a
   reply waited up to Python's 5 ms switch interval while the executor ran callbacks (the
