@@ -7,6 +7,7 @@ printed frames (test/vectors/kinco_ec_frames.yaml, sdo_frames).
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import uuid
@@ -370,3 +371,17 @@ def test_reconnects_leave_no_pdo_subscriptions_behind(channel):
     finally:
         drive.close()
         sim_bus.stop()
+
+
+def test_the_host_heartbeat_is_told_once_not_at_every_reopen(channel, caplog):
+    """An offline drive reopens its channel at each attempt: an INFO line 3 times a second."""
+    caplog.set_level(logging.DEBUG, logger='vfd_ros2.transports.canopen')
+    for _ in range(3):
+        transport = CanopenTransport(interface='virtual', channel=channel, timeout=0.2)
+        transport.open()
+        try:
+            transport.produce_heartbeat(0.04)
+        finally:
+            transport.close()
+    told = [r.levelno for r in caplog.records if 'host heartbeat as node' in r.getMessage()]
+    assert told == [logging.INFO, logging.DEBUG, logging.DEBUG], told

@@ -76,6 +76,9 @@ SDO_ABORT_COMMAND_SPECIFIER = 0x05040001
 #: bits n = 4 - data bytes go in bits 2-3); the server's initiate download response
 SDO_EXPEDITED_DOWNLOAD = 0x23
 SDO_DOWNLOAD_CONFIRMED = 0x60
+#: host heartbeats logged at INFO (channel, node id, period ms): each once per process
+_HEARTBEATS_TOLD: set[tuple[str, int, int]] = set()
+
 #: NMT state byte of Operational in a heartbeat (CiA 301); the host reports it too
 NMT_OPERATIONAL = 0x05
 #: s between two looks at a node's heartbeat while a connect waits for it
@@ -524,8 +527,12 @@ class CanChannel:
                 raise TransportError(f'cannot produce the host heartbeat on '
                                      f'{self.description}: {exc}') from exc
             self.host_node_id, self.heartbeat_period = node_id, period
-            log.info('%s: host heartbeat as node %d every %.0f ms', self.description, node_id,
-                     period * 1000)
+            # Once per channel and period: a drive offline reopens the channel at each
+            # attempt, and this was an INFO line three times a second (outside audit).
+            told = (self.description, node_id, round(period * 1000))
+            log.log(logging.DEBUG if told in _HEARTBEATS_TOLD else logging.INFO,
+                    '%s: host heartbeat as node %d every %.0f ms', *told)
+            _HEARTBEATS_TOLD.add(told)
 
     def stop_heartbeat(self) -> None:
         """Stop the host heartbeat (at close; tests use it to play a dead host)."""
