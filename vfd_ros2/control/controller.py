@@ -1087,9 +1087,7 @@ class DriveController:
             settings_lost = getattr(self.drive, 'settings_lost', None)
             lost = settings_lost() if settings_lost is not None else ''
             if lost:
-                self.link.drop(f'the drive reset: it stopped running and {lost}')
-                self._reading = Reading()
-                self.drive.close()
+                self._connect_afresh(f'it stopped running and {lost}')
                 return
             self._lost_run = (f'told to run, the drive has reported not running for '
                               f'{self.config.action_timeout:g} s (it reset, was stopped '
@@ -1118,9 +1116,13 @@ class DriveController:
         self._exchange_failed, self._settings_checked_at = False, now
         lost = settings_lost(one=not after_failure)
         if lost:
-            self.link.drop(f'the drive reset: {lost}')
-            self._reading = Reading()
-            self.drive.close()
+            self._connect_afresh(lost)
+
+    def _connect_afresh(self, lost: str) -> None:
+        """Take a drive that reset offline: the next connect stops it and writes its settings."""
+        self.link.drop(f'the drive reset: {lost}')
+        self._reading = Reading()
+        self.drive.close()
 
     def _check_following(self) -> None:
         """Tell a drive that runs but does not reach its command, for as long as it does not.
